@@ -1,0 +1,45 @@
+# volcap: `make demo` runs the pipeline on generated data, `make test` runs the suite.
+# Both build .venv themselves (Debian packages via apt-get, pinned Python packages via pip).
+
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.volcap-installed
+PACKAGES := $(wildcard src/volcap_*)
+DEMO_DIR ?= demo_out
+
+# Large ROS messages: keep glibc from returning multi-MB buffers to the OS after every frame.
+export MALLOC_MMAP_THRESHOLD_ := 67108864
+export MALLOC_TRIM_THRESHOLD_ := 268435456
+
+.PHONY: venv test demo bench colcon clean
+
+venv: $(STAMP)
+
+$(STAMP): requirements.txt constraints.txt Makefile
+	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
+	  echo "installing Debian libusb-1.0-0 (needed by Open3D)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0; }
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt -c constraints.txt
+	@# The volcap packages run from src/ in the venv (colcon builds the same tree for a rig).
+	@$(PY) -c 'import pathlib, sysconfig; site = pathlib.Path(sysconfig.get_paths()["purelib"]); \
+	  (site / "volcap_src.pth").write_text("".join(str(p.resolve()) + "\n" for p in sorted(pathlib.Path("src").glob("volcap_*"))))'
+	@printf '#!/bin/sh\nexec "$$(dirname "$$0")/python" -m volcap_bringup.cli "$$@"\n' > $(VENV)/bin/volcap
+	@chmod +x $(VENV)/bin/volcap
+	@touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest test
+
+demo: $(STAMP)
+	$(VENV)/bin/volcap demo --out $(DEMO_DIR)
+
+bench: $(STAMP)
+	$(PY) bench/transport.py
+
+colcon: $(STAMP)
+	$(VENV)/bin/colcon build --base-paths src --build-base build --install-base install
+
+clean:
+	rm -rf build install log $(DEMO_DIR) .pytest_cache

@@ -1,0 +1,1 @@
+"""Rig configs, launch file, composed runner and the volcap command line."""

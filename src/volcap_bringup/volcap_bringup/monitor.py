@@ -1,0 +1,77 @@
+"""A subscriber standing in for a consumer of the camera streams: per-camera rates, frame-set
+completeness (through the volcap synchroniser) and transport latency (receive time minus header
+stamp, meaningful when stamps are wall-clock, e.g. a live rig or ``bag_player restamp:=true``)."""
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+
+from volcap_core import qos, topics
+from volcap_core.conversions import stamp_to_ns
+from volcap_core.sync import FrameSetSynchronizer
+
+STREAMS = {'color': topics.COLOR_IMAGE, 'depth': topics.DEPTH_IMAGE}
+
+
+class StreamMonitor(Node):
+    def __init__(self, cameras: list[str], tolerance_ms: float = 5.0, name: str = 'volcap_monitor'):
+        super().__init__(name)
+        self.cameras = cameras
+        self.arrivals = defaultdict(list)   # (camera, stream) -> [(receive_ns, stamp_ns)]
+        self.sync = FrameSetSynchronizer(cameras, tuple(STREAMS), tolerance_ns=int(tolerance_ms * 1e6),
+                                         timeout_ns=500_000_000, max_pending=8)
+        self.complete_latency_ns = []       # per complete set: last arrival - stamp
+        self.sets = []
+        self.topics = [topics.camera_topic(cam, topic) for cam in cameras for topic in STREAMS.values()]
+        for cam in cameras:
+            for stream, topic in STREAMS.items():
+                self.create_subscription(Image, topics.camera_topic(cam, topic),
+                                         lambda msg, key=(cam, stream): self._on_image(key, msg), qos.SENSOR)
+
+    def _on_image(self, key, msg: Image) -> None:
+        now = time.time_ns()
+        stamp = stamp_to_ns(msg.header.stamp)
+        self.arrivals[key].append((now, stamp))
+        for fs in self.sync.add(key[0], stamp, now, stream=key[1], now_ns=now):
+            self._on_set(fs)
+
+    def _on_set(self, fs) -> None:
+        self.sets.append(fs)
+        if fs.complete:
+            self.complete_latency_ns.append(max(fs.items.values()) - fs.stamp_ns)
+
+    def finish(self) -> None:
+        for fs in self.sync.flush():
+            self._on_set(fs)
+
+    def summary(self) -> dict:
+        per_camera = {}
+        for cam in self.cameras:
+            row = {}
+            for stream in STREAMS:
+                recv = np.array([a[0] for a in self.arrivals[(cam, stream)]], dtype=np.int64)
+                row[f'{stream}_frames'] = int(len(recv))
+                gaps = np.diff(recv)
+                row[f'{stream}_hz'] = float(1e9 / np.median(gaps)) if len(gaps) else 0.0
+            per_camera[cam] = row
+        lat = np.array(self.complete_latency_ns, dtype=np.float64) / 1e6
+        return {'cameras': per_camera,
+                'frame_sets_complete': self.sync.stats.complete,
+                'frame_sets_incomplete': self.sync.stats.incomplete,
+                'late_frames': self.sync.stats.late,
+                'latency_ms_median': float(np.median(lat)) if lat.size else None,
+                'latency_ms_p95': float(np.percentile(lat, 95)) if lat.size else None}
+
+
+def format_rates(summary: dict) -> str:
+    lines = ['camera   colour Hz  frames   depth Hz  frames']
+    for cam, row in summary['cameras'].items():
+        lines.append(f'{cam:<8} {row["color_hz"]:9.1f} {row["color_frames"]:7d} {row["depth_hz"]:10.1f} '
+                     f'{row["depth_frames"]:7d}')
+    lines.append(f'frame sets: {summary["frame_sets_complete"]} complete, {summary["frame_sets_incomplete"]} '
+                 f'incomplete, {summary["late_frames"]} late frames')
+    return '\n'.join(lines)

@@ -1,0 +1,47 @@
+"""Start volcap nodes as separate processes, as `ros2 run` does on a rig."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import yaml
+
+NODES = {
+    ('volcap_driver', 'bag_player'): 'volcap_driver.bag_player_node',
+    ('volcap_driver', 'synthetic_rig'): 'volcap_driver.synthetic_rig_node',
+    ('volcap_driver', 'recorder'): 'volcap_driver.recorder_node',
+}
+
+
+def ros_args(params: dict) -> list[str]:
+    args = ['--ros-args']
+    for key, value in params.items():
+        text = yaml.safe_dump(value, default_flow_style=True).strip()
+        if text.endswith('\n...'):
+            text = text[:-4].strip()
+        args += ['-p', f'{key}:={text}']
+    return args
+
+
+def start_node(package: str, executable: str, params: dict | None = None, env: dict | None = None,
+               **popen) -> subprocess.Popen:
+    """Run a node in its own process (``python -m`` its module, with this interpreter)."""
+    module = NODES[(package, executable)]
+    full_env = dict(os.environ)
+    full_env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    full_env.update(env or {})
+    return subprocess.Popen([sys.executable, '-m', module, *ros_args(params or {})], env=full_env, **popen)
+
+
+def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
+    """SIGINT (a clean node shutdown), then SIGKILL if it does not exit in time."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode

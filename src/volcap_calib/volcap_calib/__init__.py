@@ -1,0 +1,1 @@
+"""ChArUco and colour-chart board; extrinsic and colour calibration for volcap."""

@@ -1,0 +1,1 @@
+"""Per-camera colour correction, neural harmonisation and colour evaluation for volcap."""

@@ -1,0 +1,104 @@
+"""Rig description: the cameras, their names, intrinsics and factory depth-to-colour extrinsics.
+
+Published as YAML on ``volcap/rig`` and stored in bags, so any node can rebuild it.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .camera import K4A_COLOR_MODES, K4A_DEPTH_MODES, CameraModel, camera_from_k4a
+from .poses import make_transform, matrix_from_list, matrix_to_list
+
+RIG_VERSION = 1
+
+
+@dataclass
+class RigCamera:
+    name: str
+    color: CameraModel
+    depth: CameraModel
+    T_color_depth: np.ndarray = field(default_factory=lambda: np.eye(4))
+    serial: str = ''
+
+    @property
+    def namespace(self) -> str:
+        return self.name
+
+    @property
+    def color_frame(self) -> str:
+        return f'{self.name}_color_optical_frame'
+
+    @property
+    def depth_frame(self) -> str:
+        return f'{self.name}_depth_optical_frame'
+
+    def to_dict(self) -> dict:
+        return {'name': self.name, 'serial': self.serial, 'color': self.color.to_dict(),
+                'depth': self.depth.to_dict(), 'T_color_depth': matrix_to_list(self.T_color_depth)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'RigCamera':
+        return cls(str(d['name']), CameraModel.from_dict(d['color']), CameraModel.from_dict(d['depth']),
+                   matrix_from_list(d['T_color_depth']), str(d.get('serial', '')))
+
+
+@dataclass
+class Rig:
+    cameras: list[RigCamera]
+    name: str = 'volcap'
+
+    def __post_init__(self):
+        names = [c.name for c in self.cameras]
+        if len(set(names)) != len(names):
+            raise ValueError(f'camera names must be unique, got {names}')
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def camera(self, name: str) -> RigCamera:
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(f'no camera {name!r} in rig (cameras: {self.names})')
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump({'version': RIG_VERSION, 'name': self.name,
+                               'cameras': [c.to_dict() for c in self.cameras]}, sort_keys=False)
+
+    @classmethod
+    def from_yaml(cls, text: str) -> 'Rig':
+        d = yaml.safe_load(text)
+        if not isinstance(d, dict) or 'cameras' not in d:
+            raise ValueError('rig YAML must be a mapping with a "cameras" list')
+        if int(d.get('version', RIG_VERSION)) > RIG_VERSION:
+            raise ValueError(f'rig YAML version {d["version"]} is newer than this volcap ({RIG_VERSION})')
+        return cls([RigCamera.from_dict(c) for c in d['cameras']], str(d.get('name', 'volcap')))
+
+
+def rig_camera_from_k4a(calibration: dict | str | Path, name: str, color_mode: str = '720P',
+                        depth_mode: str = 'NFOV_UNBINNED', serial: str = '') -> RigCamera:
+    """RigCamera from an Azure Kinect factory calibration JSON (dict, text or file path)."""
+    if isinstance(calibration, Path) or (isinstance(calibration, str) and not calibration.lstrip().startswith('{')):
+        calibration = Path(calibration).read_text()
+    if isinstance(calibration, str):
+        calibration = json.loads(calibration)
+    try:
+        cams = {c['Purpose']: c for c in calibration['CalibrationInformation']['Cameras']}
+        depth, color = cams['CALIBRATION_CameraPurposeDepth'], cams['CALIBRATION_CameraPurposePhotoVideo']
+    except (KeyError, TypeError) as e:
+        raise ValueError(f'not an Azure Kinect calibration JSON: missing {e}') from e
+    if color_mode not in K4A_COLOR_MODES:
+        raise ValueError(f'unknown colour mode {color_mode!r}; known: {sorted(K4A_COLOR_MODES)}')
+    if depth_mode not in K4A_DEPTH_MODES:
+        raise ValueError(f'unknown depth mode {depth_mode!r}; known: {sorted(K4A_DEPTH_MODES)}')
+    # Each camera's Rt maps depth-camera points into that camera (metres).
+    T_color_depth = make_transform(np.reshape(color['Rt']['Rotation'], (3, 3)), color['Rt']['Translation'])
+    return RigCamera(name, camera_from_k4a(color['Intrinsics']['ModelParameters'], K4A_COLOR_MODES[color_mode]),
+                     camera_from_k4a(depth['Intrinsics']['ModelParameters'], K4A_DEPTH_MODES[depth_mode]),
+                     T_color_depth, serial)

@@ -1,0 +1,65 @@
+"""Small rclpy helpers shared by the nodes: start-up and shutdown, declared parameters with
+descriptions and ranges, and diagnostics on ``volcap/diagnostics``."""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from . import qos, topics, transport
+from .conversions import diagnostic_array, diagnostic_status
+
+
+def run_node(factory: Callable[[], Node], args=None) -> int:
+    """Create the node and spin it until Ctrl-C / SIGTERM or until it shuts the context down
+    itself; then clean up. Returns the node's ``exit_code`` (0 unless it set one)."""
+    transport.configure()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return getattr(node, 'exit_code', 0) if node is not None else 1
+
+
+def declare(node: Node, name: str, default, description: str, low=None, high=None, read_only=False):
+    """Declare a parameter with its description and, for numbers, its allowed range."""
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if low is not None and high is not None:
+        if isinstance(default, bool):
+            raise ValueError('ranges do not apply to booleans')
+        if isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high),
+                                                                  step=0.0)]
+    return node.declare_parameter(name, default, descriptor).value
+
+
+class Diagnostics:
+    """Publishes DiagnosticArray status for one node; ``report`` also logs errors and warnings."""
+
+    def __init__(self, node: Node, name: str):
+        self.node = node
+        self.name = name
+        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.EVENTS)
+
+    def report(self, level: str, message: str, **values) -> None:
+        if level == 'error':
+            self.node.get_logger().error(message)
+        elif level == 'warn':
+            self.node.get_logger().warning(message)
+        status = diagnostic_status(f'{self.node.get_name()}: {self.name}', level, message, values)
+        self.pub.publish(diagnostic_array([status], time.time_ns()))
+

@@ -1,0 +1,34 @@
+"""Topic names of the volcap contract (see README). Per-camera names are relative to the
+camera namespace ``cam<i>`` so that a launch can remap them onto a vendor driver's topics."""
+
+COLOR_IMAGE = 'color/image_raw'
+COLOR_INFO = 'color/camera_info'
+DEPTH_IMAGE = 'depth/image_raw'
+DEPTH_INFO = 'depth/camera_info'
+DEPTH_CLEAN = 'depth/image_clean'
+DEPTH_CLEAN_INFO = 'depth/image_clean/camera_info'
+POINTS = 'points'
+COLOR_CORRECTED = 'color/image_corrected'
+
+RIG = 'volcap/rig'
+PHASE = 'volcap/phase'
+CALIBRATE = 'volcap/calibrate'
+CALIBRATION = 'volcap/calibration'
+CAMERA_POSES = 'volcap/camera_poses'
+FUSED_POINTS = 'volcap/points'
+MESH = 'volcap/mesh'
+DIAGNOSTICS = 'volcap/diagnostics'
+
+# Topics whose last message a late subscriber must still get (transient-local).
+LATCHED = (RIG, CALIBRATION, CAMERA_POSES)
+
+# Session phases announced on PHASE (std_msgs/String YAML) at the first stamp of each part.
+PHASES = ('clean_plate', 'calibration', 'capture')
+
+
+def camera_topic(camera: str, topic: str) -> str:
+    return f'{camera}/{topic}'
+
+
+def camera_names(count: int) -> list[str]:
+    return [f'cam{i}' for i in range(count)]

@@ -1,0 +1,171 @@
+"""rosbag2 bags (MCAP or sqlite3) through rosbags, carrying rclpy-serialised (CDR) messages.
+
+Messages stay serialised end to end: the writer takes rclpy messages or CDR bytes, the reader
+yields CDR bytes that a player publishes as they are (no decode/encode per frame).
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+COMPRESSIONS = ('none', 'zstd')
+
+
+class BagError(RuntimeError):
+    """A bag is missing, unreadable, corrupt or truncated."""
+
+
+def message_class(msgtype: str):
+    """rclpy message class of a ROS type name such as ``sensor_msgs/msg/Image``."""
+    try:
+        pkg, kind, name = msgtype.split('/')
+        return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
+    except (ValueError, ImportError, AttributeError) as e:
+        raise BagError(f'message type {msgtype!r} is not available in this ROS environment') from e
+
+
+def msgtype_of(msg_class) -> str:
+    module = msg_class.__module__.split('.')
+    return f'{module[0]}/{module[1]}/{msg_class.__name__}'
+
+
+def _qos(latched: bool, reliable: bool = True) -> Qos:
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, 1 if latched else 10,
+               QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+
+
+class BagWriter:
+    """Write a rosbag2 MCAP bag: ``with BagWriter(path) as bag: bag.write(topic, msg, stamp_ns)``."""
+
+    def __init__(self, path: str | Path, compression: str = 'none'):
+        if compression not in COMPRESSIONS:
+            raise ValueError(f'compression must be one of {COMPRESSIONS}, got {compression!r}')
+        self.path = Path(path)
+        self._typestore = get_typestore(Stores.ROS2_JAZZY)
+        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        if compression == 'zstd':
+            # MCAP chunk compression: still readable by `ros2 bag` and the mcap tools.
+            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        self._connections = {}
+        self.count = 0
+
+    def __enter__(self) -> 'BagWriter':
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def open(self) -> None:
+        try:
+            self._writer.open()
+        except Exception as e:
+            raise BagError(f'cannot create bag {self.path}: {e}') from e
+
+    def add_topic(self, topic: str, msgtype: str, latched: bool = False, reliable: bool = True) -> None:
+        if topic in self._connections:
+            return
+        self._connections[topic] = self._writer.add_connection(
+            topic, msgtype, typestore=self._typestore, offered_qos_profiles=[_qos(latched, reliable)])
+
+    def write(self, topic: str, msg, stamp_ns: int) -> None:
+        """Write an rclpy message (its topic added on first use) or CDR bytes (topic added first)."""
+        if topic not in self._connections:
+            if isinstance(msg, (bytes, bytearray, memoryview)):
+                raise BagError(f'add_topic({topic!r}, type) before writing serialised data to it')
+            self.add_topic(topic, msgtype_of(type(msg)))
+        data = bytes(msg) if isinstance(msg, (bytes, bytearray, memoryview)) else serialize_message(msg)
+        self._writer.write(self._connections[topic], int(stamp_ns), data)
+        self.count += 1
+
+    def close(self) -> None:
+        self._writer.close()
+
+
+@dataclass
+class BagMessage:
+    topic: str
+    msgtype: str
+    stamp_ns: int      # bag log time (= capture stamp for volcap bags)
+    data: bytes        # CDR
+
+    def decode(self):
+        return deserialize_message(self.data, message_class(self.msgtype))
+
+
+class BagReader:
+    """Read a rosbag2 bag directory (MCAP or sqlite3) with clear errors for bad files."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.exists():
+            raise BagError(f'bag {self.path} does not exist')
+        if not (self.path / 'metadata.yaml').exists():
+            raise BagError(f'{self.path} is not a rosbag2 bag directory (no metadata.yaml)')
+        try:
+            self._reader = Reader(self.path)
+            self._reader.open()
+        except Exception as e:
+            raise BagError(f'cannot open bag {self.path}: {e}') from e
+
+    def __enter__(self) -> 'BagReader':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._reader.close()
+
+    @property
+    def topics(self) -> dict[str, str]:
+        return {c.topic: c.msgtype for c in self._reader.connections}
+
+    @property
+    def latched_topics(self) -> set[str]:
+        out = set()
+        for c in self._reader.connections:
+            qos = getattr(c.ext, 'offered_qos_profiles', []) or []
+            if any(q.durability == QosDurability.TRANSIENT_LOCAL for q in qos):
+                out.add(c.topic)
+        return out
+
+    @property
+    def start_ns(self) -> int:
+        return self._reader.start_time
+
+    @property
+    def end_ns(self) -> int:
+        return self._reader.end_time
+
+    @property
+    def message_count(self) -> int:
+        return self._reader.message_count
+
+    def messages(self, topics: list[str] | None = None, start_ns: int | None = None,
+                 stop_ns: int | None = None) -> Iterator[BagMessage]:
+        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        n, last = 0, None
+        try:
+            for conn, stamp, data in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
+                n, last = n + 1, stamp
+                yield BagMessage(conn.topic, conn.msgtype, int(stamp), bytes(data))
+        except BagError:
+            raise
+        except Exception as e:
+            where = f'after {n} messages (last stamp {last})' if n else 'before its first message'
+            raise BagError(f'bag {self.path} is corrupt or truncated {where}: {type(e).__name__}: {e}') from e
+
+    def first(self, topic: str) -> BagMessage | None:
+        """First message on a topic, e.g. the rig description."""
+        return next(self.messages([topic]), None)

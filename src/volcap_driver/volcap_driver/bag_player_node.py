@@ -1,0 +1,136 @@
+"""bag_player: replay a rosbag2 bag (MCAP or sqlite3) onto the volcap topics.
+
+    ros2 run volcap_driver bag_player --ros-args -p bag:=DIR [-p rate:=0.5] [-p loop:=true]
+
+Messages go out as stored (serialised CDR, original header stamps) at real time x ``rate`` or as
+fast as possible; latched topics (the rig description, calibration) are transient-local so late
+subscribers still get them. A missing, corrupt or truncated bag is reported on the log and on
+``volcap/diagnostics``; what could be read is still played.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+from rclpy.node import Node
+
+from volcap_core import qos, topics
+from volcap_core.ros import Diagnostics, declare, run_node
+
+from .bag_io import BagError, BagReader, message_class
+from .playback import HEADER_FIRST_TYPES, Schedule, output_topic, parse_remaps, restamp_cdr
+
+
+class BagPlayer(Node):
+    def __init__(self):
+        super().__init__('bag_player')
+        self.bag = declare(self, 'bag', '', 'rosbag2 bag directory (MCAP or sqlite3) to replay', read_only=True)
+        declare(self, 'rate', 1.0, 'playback speed relative to real time (changeable while playing)', 0.01, 100.0)
+        self.fast = declare(self, 'as_fast_as_possible', False, 'publish without waiting between messages')
+        self.loop = declare(self, 'loop', False, 'start again from the beginning when the bag ends')
+        self.start_offset = declare(self, 'start_offset', 0.0, 'seconds into the bag to start from', 0.0, 1e7)
+        self.topic_filter = declare(self, 'topics', [''], 'bag topics to play (empty: all)')
+        self.remaps = parse_remaps([r for r in declare(self, 'remap', [''], 'FROM:=TO topic remappings') if r])
+        self.namespace_prefix = declare(self, 'namespace', '', 'prefix for every played topic (not remapped ones)')
+        self.extra_latched = declare(self, 'latched_topics', [''], 'extra bag topics to publish transient-local')
+        self.restamp = declare(self, 'restamp', False,
+                               'rewrite header stamps to the wall-clock time each message is scheduled at')
+        self.exit_when_done = declare(self, 'exit_when_done', True, 'shut the node down when playback ends')
+        self.wait_for_subscribers = declare(self, 'wait_for_subscribers', 0.0,
+                                            'wait up to this many seconds for every played topic to have a '
+                                            'subscriber before starting (0: start at once)', 0.0, 3600.0)
+        self.diagnostics = Diagnostics(self, 'playback')
+        self.exit_code = 0
+        self.published = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='bag_playback', daemon=True)
+        self.get_logger().info(f'bag_player started: {self.bag or "(no bag given)"}')
+        self._thread.start()
+
+    def destroy_node(self):
+        self._stop.set()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout=2.0)
+        return super().destroy_node()
+
+    def _run(self) -> None:
+        try:
+            if not self.bag:
+                raise BagError('no bag given: set the "bag" parameter (--ros-args -p bag:=DIR)')
+            with BagReader(self.bag) as reader:
+                self._play(reader)
+        except BagError as e:
+            self.exit_code = 1
+            self.diagnostics.report('error', str(e), published=self.published)
+        except Exception as e:  # a bug must not leave the node silently idle
+            self.exit_code = 1
+            self.diagnostics.report('error', f'playback failed: {type(e).__name__}: {e}', published=self.published)
+        if self.exit_when_done and not self._stop.is_set():
+            self.context.try_shutdown()
+
+    def _play(self, reader: BagReader) -> None:
+        wanted = [t for t in self.topic_filter if t]
+        bag_topics = {t: ty for t, ty in reader.topics.items() if not wanted or t in wanted}
+        missing = set(wanted) - set(bag_topics)
+        if missing:
+            self.diagnostics.report('warn', f'topics not in {self.bag}: {sorted(missing)}')
+        latched = reader.latched_topics | set(topics.LATCHED) | {t for t in self.extra_latched if t}
+        pubs = {}
+        for topic, msgtype in bag_topics.items():
+            profile = qos.LATCHED if topic in latched else qos.DRIVER
+            pubs[topic] = self.create_publisher(message_class(msgtype), output_topic(topic, self.remaps,
+                                                                                     self.namespace_prefix), profile)
+        self._await_subscribers(pubs)
+        start = reader.start_ns + int(self.start_offset * 1e9)
+        self.get_logger().info(f'playing {reader.message_count} messages on {len(pubs)} topics, '
+                               f'{(reader.end_ns - reader.start_ns) / 1e9:.2f} s of bag time')
+        rate = self.get_parameter('rate').value
+        schedule = Schedule(start, time.time_ns(), rate, self.fast)
+        last_report = time.monotonic()
+        while not self._stop.is_set():
+            for msg in reader.messages(list(pubs), start_ns=start):
+                new_rate = self.get_parameter('rate').value
+                if new_rate != rate:
+                    rate, schedule = new_rate, schedule.rebase(msg.stamp_ns, time.time_ns(), new_rate)
+                target = schedule.wall_time(msg.stamp_ns)
+                delay = (target - time.time_ns()) / 1e9
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                data = msg.data
+                if self.restamp and msg.msgtype in HEADER_FIRST_TYPES:
+                    data = restamp_cdr(data, target)
+                pubs[msg.topic].publish(data)
+                self.published += 1
+                if time.monotonic() - last_report > 1.0:
+                    last_report = time.monotonic()
+                    self.diagnostics.report('ok', 'playing', published=self.published,
+                                            lag_ms=f'{(time.time_ns() - target) / 1e6:.1f}',
+                                            bag_time=f'{(msg.stamp_ns - reader.start_ns) / 1e9:.3f}')
+            if not self.loop:
+                break
+            schedule = Schedule(start, time.time_ns() + 1, rate, self.fast)
+        self.diagnostics.report('ok', f'finished: {self.published} messages published', published=self.published)
+        self.get_logger().info(f'finished: {self.published} messages published')
+
+
+    def _await_subscribers(self, pubs: dict) -> None:
+        deadline = time.monotonic() + self.wait_for_subscribers
+        while time.monotonic() < deadline and not self._stop.is_set():
+            waiting = [t for t, p in pubs.items() if p.get_subscription_count() == 0]
+            if not waiting:
+                return
+            self._stop.wait(0.05)
+        if self.wait_for_subscribers > 0:
+            waiting = [t for t, p in pubs.items() if p.get_subscription_count() == 0]
+            if waiting:
+                self.diagnostics.report('warn', f'starting without subscribers on {len(waiting)} topics, '
+                                                f'e.g. {waiting[0]}')
+
+
+def main(args=None):
+    sys.exit(run_node(BagPlayer, args))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,111 @@
+"""recorder: write chosen topics to a rosbag2 MCAP bag that `ros2 bag` and the mcap tools read.
+
+    ros2 run volcap_driver recorder --ros-args -p out:=DIR -p topics:="['cam0/color/image_raw']"
+
+Messages are stored as received (serialised, no decode) with their receive time as log time.
+Topics are discovered as publishers appear; each is subscribed with the QoS its publishers
+offer (reliable / transient-local when all of them are), as rosbag2 does. The bag is closed
+(metadata written) on Ctrl-C, SIGTERM or after ``max_duration``.
+"""
+from __future__ import annotations
+
+import sys
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from volcap_core.ros import Diagnostics, declare, run_node
+
+from .bag_io import COMPRESSIONS, BagError, BagWriter, message_class
+
+IGNORED = ('/rosout', '/parameter_events', '/volcap/diagnostics')
+
+
+def _absolute(topic: str, namespace: str) -> str:
+    if topic.startswith('/'):
+        return topic
+    return f'{namespace.rstrip("/")}/{topic}'
+
+
+class Recorder(Node):
+    def __init__(self):
+        super().__init__('recorder')
+        out = declare(self, 'out', '', 'bag directory to create (must not exist)', read_only=True)
+        compression = declare(self, 'compression', 'none', f'MCAP chunk compression: {"|".join(COMPRESSIONS)}',
+                              read_only=True)
+        wanted = [t for t in declare(self, 'topics', [''], 'topics to record (empty: every topic)', read_only=True)
+                  if t]
+        period = declare(self, 'discovery_period', 0.5, 'seconds between looks for new publishers', 0.05, 10.0)
+        max_duration = declare(self, 'max_duration', 0.0, 'stop after this many seconds (0: until stopped)',
+                               0.0, 1e7)
+        self.diagnostics = Diagnostics(self, 'recording')
+        self.wanted = {_absolute(t, self.get_namespace()) for t in wanted}
+        self.exit_code = 0
+        self.subs = {}
+        self.counts = {}
+        self.writer = None
+        try:
+            if not out:
+                raise BagError('no output given: set the "out" parameter (--ros-args -p out:=DIR)')
+            self.writer = BagWriter(out, compression)
+            self.writer.open()
+        except (BagError, ValueError) as e:
+            self.exit_code = 1
+            self.diagnostics.report('error', str(e))
+            self.context.try_shutdown()
+            return
+        self.get_logger().info(f'recorder started: writing {out} ({compression})')
+        self.create_timer(period, self._discover)
+        self.create_timer(2.0, self._report)
+        if max_duration > 0:
+            self.create_timer(max_duration, self.context.try_shutdown)
+        self._discover()
+
+    def _discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self.subs or topic in IGNORED or (self.wanted and topic not in self.wanted):
+                continue
+            infos = self.get_publishers_info_by_topic(topic)
+            if not infos:
+                continue
+            reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
+            latched = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+            profile = QoSProfile(depth=1 if latched else 100,
+                                 reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+            try:
+                msg_class = message_class(types[0])
+            except BagError as e:
+                self.diagnostics.report('warn', f'not recording {topic}: {e}')
+                self.subs[topic] = None
+                continue
+            name = topic.lstrip('/')
+            self.writer.add_topic(name, types[0], latched=latched, reliable=reliable)
+            self.counts[name] = 0
+            self.subs[topic] = self.create_subscription(
+                msg_class, topic, lambda data, name=name: self._write(name, data), profile, raw=True)
+            self.get_logger().info(f'recording {topic} [{types[0]}]')
+
+    def _write(self, topic: str, data: bytes) -> None:
+        if self.writer is None:
+            return
+        self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+        self.counts[topic] += 1
+
+    def _report(self) -> None:
+        self.diagnostics.report('ok', 'recording', messages=sum(self.counts.values()), topics=len(self.counts))
+
+    def destroy_node(self):
+        if self.writer is not None:
+            writer, self.writer = self.writer, None
+            writer.close()
+            self.get_logger().info(f'closed bag: {sum(self.counts.values())} messages on {len(self.counts)} topics')
+        return super().destroy_node()
+
+
+def main(args=None):
+    sys.exit(run_node(Recorder, args))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,1 @@
+"""Depth registration and cleaning for volcap."""

@@ -1,0 +1,1 @@
+"""TSDF fusion, mesh and point-cloud output, volumetric sequence writer for volcap."""
