@@ -48,18 +48,25 @@ def declare(node: Node, name: str, default, description: str, low=None, high=Non
 
 
 class Diagnostics:
-    """Publishes DiagnosticArray status for one node; ``report`` also logs errors and warnings."""
+    """Publishes one node's status on ``volcap/diagnostics``: at once on every report, and the
+    latest status again every ``period`` seconds (so late subscribers see it). Errors and
+    warnings also go to the log."""
 
-    def __init__(self, node: Node, name: str):
+    def __init__(self, node: Node, name: str, period: float = 1.0):
         self.node = node
         self.name = name
         self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.EVENTS)
+        self._last = None
+        node.create_timer(period, self._republish)
 
     def report(self, level: str, message: str, **values) -> None:
         if level == 'error':
             self.node.get_logger().error(message)
         elif level == 'warn':
             self.node.get_logger().warning(message)
-        status = diagnostic_status(f'{self.node.get_name()}: {self.name}', level, message, values)
-        self.pub.publish(diagnostic_array([status], time.time_ns()))
+        self._last = diagnostic_status(f'{self.node.get_name()}: {self.name}', level, message, values)
+        self._republish()
 
+    def _republish(self) -> None:
+        if self._last is not None:
+            self.pub.publish(diagnostic_array([self._last], time.time_ns()))

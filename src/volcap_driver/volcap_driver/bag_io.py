@@ -12,7 +12,7 @@ from typing import Iterator
 
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, get_typestore
 
 COMPRESSIONS = ('none', 'zstd')
@@ -52,7 +52,10 @@ class BagWriter:
             raise ValueError(f'compression must be one of {COMPRESSIONS}, got {compression!r}')
         self.path = Path(path)
         self._typestore = get_typestore(Stores.ROS2_JAZZY)
-        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        try:
+            self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        except WriterError as e:
+            raise BagError(f'cannot create bag {self.path}: {e}') from e
         if compression == 'zstd':
             # MCAP chunk compression: still readable by `ros2 bag` and the mcap tools.
             self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
@@ -104,19 +107,72 @@ class BagMessage:
 
 
 class BagReader:
-    """Read a rosbag2 bag directory (MCAP or sqlite3) with clear errors for bad files."""
+    """Read a rosbag2 bag directory (MCAP or sqlite3) with clear errors for bad files.
+
+    An MCAP bag whose recording was cut off (no footer or index, possibly no metadata.yaml) is
+    still read by streaming its records up to the damage; ``damage`` then says what is wrong and
+    iterating ``messages`` ends with a BagError after the last readable message.
+    """
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        self.damage = ''
         if not self.path.exists():
             raise BagError(f'bag {self.path} does not exist')
+        mcaps = sorted(self.path.glob('*.mcap'))
         if not (self.path / 'metadata.yaml').exists():
-            raise BagError(f'{self.path} is not a rosbag2 bag directory (no metadata.yaml)')
+            if len(mcaps) != 1:
+                raise BagError(f'{self.path} is not a rosbag2 bag directory (no metadata.yaml)')
+            self._open_stream(mcaps[0], 'no metadata.yaml (recording interrupted?)')
+            return
         try:
             self._reader = Reader(self.path)
             self._reader.open()
         except Exception as e:
-            raise BagError(f'cannot open bag {self.path}: {e}') from e
+            if len(mcaps) != 1:
+                raise BagError(f'cannot open bag {self.path}: {e}') from e
+            self._open_stream(mcaps[0], f'unreadable index ({e})')
+
+    def _open_stream(self, mcap: Path, why: str) -> None:
+        self._reader = None
+        self._mcap = mcap
+        self._channels, self._counts, self._latched = {}, {}, set()
+        self._start = self._end = None
+        n = 0
+        try:
+            for channel, stamp, _ in self._stream():
+                n += 1
+                self._counts[channel.topic] = self._counts.get(channel.topic, 0) + 1
+                self._start = stamp if self._start is None else min(self._start, stamp)
+                self._end = stamp if self._end is None else max(self._end, stamp)
+        except BagError as e:
+            why = f'{why}; {e}'
+        if n == 0:
+            raise BagError(f'cannot open bag {self.path}: {why}; no message could be read')
+        self.damage = f'{why}; {n} messages readable'
+
+    def _stream(self) -> Iterator[tuple]:
+        """(channel, log_time, data) of every message record up to the first damaged one."""
+        from mcap.records import Channel, Message, Schema
+        from mcap.stream_reader import StreamReader
+        schemas = {}
+        n = 0
+        try:
+            with open(self._mcap, 'rb') as f:
+                for record in StreamReader(f).records:
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record.name
+                    elif isinstance(record, Channel):
+                        self._channels[record.id] = record
+                        self._channels[record.id].msgtype = schemas.get(record.schema_id, '')
+                        if 'durability: 1' in record.metadata.get('offered_qos_profiles', ''):
+                            self._latched.add(record.topic)
+                    elif isinstance(record, Message):
+                        n += 1
+                        yield self._channels[record.channel_id], record.log_time, record.data
+        except Exception as e:
+            raise BagError(f'bag {self.path} is corrupt or truncated after {n} messages: '
+                           f'{type(e).__name__}: {e}') from e
 
     def __enter__(self) -> 'BagReader':
         return self
@@ -125,14 +181,19 @@ class BagReader:
         self.close()
 
     def close(self) -> None:
-        self._reader.close()
+        if self._reader is not None:
+            self._reader.close()
 
     @property
     def topics(self) -> dict[str, str]:
+        if self._reader is None:
+            return {c.topic: c.msgtype for c in self._channels.values()}
         return {c.topic: c.msgtype for c in self._reader.connections}
 
     @property
     def latched_topics(self) -> set[str]:
+        if self._reader is None:
+            return set(self._latched)
         out = set()
         for c in self._reader.connections:
             qos = getattr(c.ext, 'offered_qos_profiles', []) or []
@@ -142,29 +203,38 @@ class BagReader:
 
     @property
     def start_ns(self) -> int:
-        return self._reader.start_time
+        return self._start if self._reader is None else self._reader.start_time
 
     @property
     def end_ns(self) -> int:
-        return self._reader.end_time
+        return self._end if self._reader is None else self._reader.end_time
 
     @property
     def message_count(self) -> int:
-        return self._reader.message_count
+        return sum(self._counts.values()) if self._reader is None else self._reader.message_count
 
     def messages(self, topics: list[str] | None = None, start_ns: int | None = None,
                  stop_ns: int | None = None) -> Iterator[BagMessage]:
+        if self._reader is None:
+            yield from self._stream_messages(topics, start_ns, stop_ns)
+            return
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
         n, last = 0, None
         try:
             for conn, stamp, data in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
                 n, last = n + 1, stamp
                 yield BagMessage(conn.topic, conn.msgtype, int(stamp), bytes(data))
-        except BagError:
-            raise
         except Exception as e:
             where = f'after {n} messages (last stamp {last})' if n else 'before its first message'
             raise BagError(f'bag {self.path} is corrupt or truncated {where}: {type(e).__name__}: {e}') from e
+
+    def _stream_messages(self, topics, start_ns, stop_ns) -> Iterator[BagMessage]:
+        for channel, stamp, data in self._stream():
+            if (topics is None or channel.topic in topics) and (start_ns is None or stamp >= start_ns) \
+                    and (stop_ns is None or stamp < stop_ns):
+                yield BagMessage(channel.topic, channel.msgtype, int(stamp), bytes(data))
+        if 'corrupt or truncated' in self.damage:
+            raise BagError(f'bag {self.path}: {self.damage}')
 
     def first(self, topic: str) -> BagMessage | None:
         """First message on a topic, e.g. the rig description."""

@@ -59,6 +59,8 @@ class BagPlayer(Node):
             if not self.bag:
                 raise BagError('no bag given: set the "bag" parameter (--ros-args -p bag:=DIR)')
             with BagReader(self.bag) as reader:
+                if reader.damage:
+                    self.diagnostics.report('warn', f'damaged bag {self.bag}: {reader.damage}; playing what is readable')
                 self._play(reader)
         except BagError as e:
             self.exit_code = 1

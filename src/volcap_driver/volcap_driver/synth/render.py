@@ -264,6 +264,7 @@ class CameraView:
         noise = rng.standard_normal((h, w), dtype=np.float32) * tof.sigma(clean)
         measured = np.where(in_range & ~dropped, clean + noise, 0.0).astype(np.float32)
         flying = self._mixed_pixels(z, measured, full, tof, rng)
+        dropped &= ~flying   # a mixed pixel reports a depth even where its centre surface would not
         speckle = _speckle(measured, flying, tof, rng)
         depth_mm = np.clip(np.round(np.maximum(measured, 0.0) * 1000.0), 0, 65535).astype(np.uint16)
         return DepthRender(depth_mm, clean, flying, speckle & (depth_mm > 0), dropped, obj.reshape(h, w))
