@@ -6,6 +6,7 @@ import time
 from typing import Callable
 
 import rclpy
+import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
@@ -26,11 +27,14 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (ValueError, OSError) as e:   # bad parameters or files: say so plainly, no traceback
+        rclpy.logging.get_logger('volcap').fatal(f'cannot start: {e}')
+        return 2
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    return getattr(node, 'exit_code', 0) if node is not None else 1
+    return getattr(node, 'exit_code', 0)  # 0 too when interrupted while starting
 
 
 def declare(node: Node, name: str, default, description: str, low=None, high=None, read_only=False):

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
+import yaml
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer, WriterError
@@ -165,7 +166,8 @@ class BagReader:
                     elif isinstance(record, Channel):
                         self._channels[record.id] = record
                         self._channels[record.id].msgtype = schemas.get(record.schema_id, '')
-                        if 'durability: 1' in record.metadata.get('offered_qos_profiles', ''):
+                        profiles = yaml.safe_load(record.metadata.get('offered_qos_profiles', '') or '[]') or []
+                        if any(p.get('durability') in ('transient_local', 1) for p in profiles):
                             self._latched.add(record.topic)
                     elif isinstance(record, Message):
                         n += 1

@@ -1,0 +1,99 @@
+"""`colcon build` of src/ as on a rig, and every declared executable found and started where
+`ros2 run <pkg> <exe>` looks for it (install/<pkg>/lib/<pkg>/<exe>)."""
+import configparser
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = sorted(p.name for p in (REPO / 'src').iterdir() if (p / 'package.xml').exists())
+
+
+def declared_executables():
+    out = []
+    for pkg in PACKAGES:
+        text = (REPO / 'src' / pkg / 'setup.py').read_text()
+        out += [(pkg, name) for name in re.findall(r"'(\w+) = [\w.]+:main'", text)]
+    return out
+
+
+@pytest.fixture(scope='module')
+def install(tmp_path_factory):
+    if shutil.which('colcon', path=str(Path(sys.executable).parent)) is None:
+        pytest.fail('colcon is not installed in the venv (make venv installs colcon-core and colcon-ros)')
+    base = tmp_path_factory.mktemp('colcon')
+    colcon = str(Path(sys.executable).parent / 'colcon')
+    run = subprocess.run([colcon, '--log-base', str(base / 'log'), 'build', '--base-paths', str(REPO / 'src'),
+                          '--build-base', str(base / 'build'), '--install-base', str(base / 'install'),
+                          '--event-handlers', 'console_direct-'],
+                         cwd=base, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert run.stdout.count('Finished <<<') == len(PACKAGES), run.stdout
+    return base / 'install'
+
+
+def test_every_package_is_ament_python_format_3():
+    assert PACKAGES == ['volcap_bringup', 'volcap_calib', 'volcap_color', 'volcap_core', 'volcap_driver',
+                        'volcap_filter', 'volcap_fusion']
+    for pkg in PACKAGES:
+        xml = (REPO / 'src' / pkg / 'package.xml').read_text()
+        assert '<package format="3">' in xml and '<build_type>ament_python</build_type>' in xml
+        cfg = configparser.ConfigParser()
+        cfg.read(REPO / 'src' / pkg / 'setup.cfg')
+        assert cfg['install']['install_scripts'] == f'$base/lib/{pkg}'
+        assert "extras_require={'test': ['pytest']}" in (REPO / 'src' / pkg / 'setup.py').read_text()
+
+
+def test_install_layout(install):
+    for pkg in PACKAGES:
+        assert (install / pkg / 'share' / 'ament_index' / 'resource_index' / 'packages' / pkg).exists()
+        assert (install / pkg / 'share' / pkg / 'package.xml').exists()
+    assert list((install / 'volcap_core').rglob('config/fastdds_volcap.xml'))
+    assert list((install / 'volcap_calib').rglob('config/board.yaml'))
+
+
+def run_installed(install, pkg, exe, params, data):
+    env = dict(os.environ)
+    env['AMENT_PREFIX_PATH'] = sys.prefix
+    env['VOLCAP_DATA'] = str(data)
+    script = (f'. "{install}/setup.sh" && exec "{install}/{pkg}/lib/{pkg}/{exe}" --ros-args '
+              + ' '.join(f'-p {k}:={v}' for k, v in params.items()))
+    return subprocess.Popen(['bash', '-c', script], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+
+
+@pytest.mark.parametrize('pkg, exe', declared_executables())
+def test_executables_start_from_the_install_space(install, pkg, exe, studio_bag, tmp_path, shared_data):
+    path = install / pkg / 'lib' / pkg / exe
+    assert path.exists() and os.access(path, os.X_OK)
+    params = {'bag_player': {'bag': str(studio_bag), 'as_fast_as_possible': 'true', 'topics': "['volcap/rig']"},
+              'recorder': {'out': str(tmp_path / 'rec')},
+              'synthetic_rig': {'cameras': 1, 'frames': 1, 'fps': 5.0}}[exe]
+    proc = run_installed(install, pkg, exe, params, shared_data)
+    try:
+        lines = []
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if f'{exe} started' in line:
+                break
+        assert any(f'{exe} started' in line for line in lines), ''.join(lines)
+        if exe == 'bag_player':
+            assert proc.wait(60) == 0
+        else:
+            os.killpg(proc.pid, signal.SIGINT)
+            assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
