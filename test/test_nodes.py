@@ -134,12 +134,11 @@ def test_recorder_writes_what_the_player_publishes(studio_bag, tmp_path, probe_f
     recorder = start_node('volcap_driver', 'recorder', {'out': str(out), 'compression': 'zstd',
                                                         'topics': ['/cam0/color/image_raw', '/volcap/rig']})
     procs.append(recorder)
-    time.sleep(1.0)   # recorder up and polling for publishers
-    player = play(procs, studio_bag, topics=['cam0/color/image_raw', 'volcap/rig'], wait_for_subscribers=0.0,
-                  start_offset=0.0)
-    # The recorder discovers the player's topics first; give it a head start by waiting on a probe.
-    probe = probe_factory([('cam0/color/image_raw', Image, qos.SENSOR)])
+    # The player starts once the recorder has discovered and subscribed to both its topics.
+    player = play(procs, studio_bag, topics=['cam0/color/image_raw', 'volcap/rig'])
+    probe = probe_factory([('volcap/diagnostics', DiagnosticArray, qos.EVENTS)])
     assert probe.spin_until(lambda: player.poll() is not None, 60)
+    assert player.returncode == 0
     time.sleep(0.5)
     assert stop(recorder) == 0
     with BagReader(out) as r:
@@ -148,7 +147,7 @@ def test_recorder_writes_what_the_player_publishes(studio_bag, tmp_path, probe_f
         recorded = [m.decode() for m in r.messages(['cam0/color/image_raw'])]
     with BagReader(studio_bag) as r:
         original = {stamp_to_ns(m.header.stamp): m for m in (x.decode() for x in r.messages(['cam0/color/image_raw']))}
-    assert len(recorded) >= 3   # frames published before discovery completes may be missed, as with ros2 bag
+    assert len(recorded) == 5
     for m in recorded:
         assert bytes(m.data) == bytes(original[stamp_to_ns(m.header.stamp)].data)
 

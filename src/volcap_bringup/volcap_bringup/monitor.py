@@ -12,29 +12,39 @@ from sensor_msgs.msg import Image
 
 from volcap_core import qos, topics
 from volcap_core.conversions import stamp_to_ns
+from volcap_driver.playback import cdr_stamp_ns
 from volcap_core.sync import FrameSetSynchronizer
 
 STREAMS = {'color': topics.COLOR_IMAGE, 'depth': topics.DEPTH_IMAGE}
 
 
 class StreamMonitor(Node):
-    def __init__(self, cameras: list[str], tolerance_ms: float = 5.0, name: str = 'volcap_monitor'):
+    def __init__(self, cameras: list[str], tolerance_ms: float = 5.0, name: str = 'volcap_monitor',
+                 raw: bool = False):
+        """``raw``: take serialised messages and read only the header stamp (no image decode), to
+        separate transport cost from deserialisation cost."""
         super().__init__(name)
         self.cameras = cameras
-        self.arrivals = defaultdict(list)   # (camera, stream) -> [(receive_ns, stamp_ns)]
-        self.sync = FrameSetSynchronizer(cameras, tuple(STREAMS), tolerance_ns=int(tolerance_ms * 1e6),
-                                         timeout_ns=500_000_000, max_pending=8)
-        self.complete_latency_ns = []       # per complete set: last arrival - stamp
-        self.sets = []
+        self.tolerance_ns = int(tolerance_ms * 1e6)
+        self.reset()
         self.topics = [topics.camera_topic(cam, topic) for cam in cameras for topic in STREAMS.values()]
         for cam in cameras:
             for stream, topic in STREAMS.items():
                 self.create_subscription(Image, topics.camera_topic(cam, topic),
-                                         lambda msg, key=(cam, stream): self._on_image(key, msg), qos.SENSOR)
+                                         lambda msg, key=(cam, stream): self._on_image(key, msg), qos.SENSOR,
+                                         raw=raw)
+
+    def reset(self) -> None:
+        """Forget everything received so far (e.g. after a warm-up)."""
+        self.arrivals = defaultdict(list)   # (camera, stream) -> [(receive_ns, stamp_ns)]
+        self.sync = FrameSetSynchronizer(self.cameras, tuple(STREAMS), tolerance_ns=self.tolerance_ns,
+                                         timeout_ns=500_000_000, max_pending=8)
+        self.complete_latency_ns = []       # per complete set: last arrival - stamp
+        self.sets = []
 
     def _on_image(self, key, msg: Image) -> None:
         now = time.time_ns()
-        stamp = stamp_to_ns(msg.header.stamp)
+        stamp = cdr_stamp_ns(msg) if isinstance(msg, bytes) else stamp_to_ns(msg.header.stamp)
         self.arrivals[key].append((now, stamp))
         for fs in self.sync.add(key[0], stamp, now, stream=key[1], now_ns=now):
             self._on_set(fs)

@@ -9,6 +9,7 @@ subscribers still get them. A missing, corrupt or truncated bag is reported on t
 """
 from __future__ import annotations
 
+import queue
 import sys
 import threading
 import time
@@ -20,6 +21,8 @@ from volcap_core.ros import Diagnostics, declare, run_node
 
 from .bag_io import BagError, BagReader, message_class
 from .playback import HEADER_FIRST_TYPES, Schedule, output_topic, parse_remaps, restamp_cdr
+
+READ_AHEAD = 96   # messages: three 8-camera frame sets of colour, depth and their infos
 
 
 class BagPlayer(Node):
@@ -88,10 +91,10 @@ class BagPlayer(Node):
         self.get_logger().info(f'playing {reader.message_count} messages on {len(pubs)} topics, '
                                f'{(reader.end_ns - reader.start_ns) / 1e9:.2f} s of bag time')
         rate = self.get_parameter('rate').value
-        schedule = Schedule(start, time.time_ns(), rate, self.fast)
         last_report = time.monotonic()
         while not self._stop.is_set():
-            for msg in reader.messages(list(pubs), start_ns=start):
+            schedule = Schedule(start, time.time_ns(), rate, self.fast)
+            for msg in self._read_ahead(reader, list(pubs), start):
                 new_rate = self.get_parameter('rate').value
                 if new_rate != rate:
                     rate, schedule = new_rate, schedule.rebase(msg.stamp_ns, time.time_ns(), new_rate)
@@ -111,10 +114,43 @@ class BagPlayer(Node):
                                             bag_time=f'{(msg.stamp_ns - reader.start_ns) / 1e9:.3f}')
             if not self.loop:
                 break
-            schedule = Schedule(start, time.time_ns() + 1, rate, self.fast)
         self.diagnostics.report('ok', f'finished: {self.published} messages published', published=self.published)
         self.get_logger().info(f'finished: {self.published} messages published')
 
+
+    def _read_ahead(self, reader: BagReader, topic_list: list[str], start: int):
+        """Messages from a reader thread that stays up to READ_AHEAD messages (a few frame sets)
+        ahead, so a set is in memory when its time comes and goes out in one burst, as a rig's
+        cameras publish it. Reader errors surface here, after the messages read before them."""
+        q = queue.Queue(maxsize=READ_AHEAD)
+        done = object()
+
+        def produce():
+            try:
+                for msg in reader.messages(topic_list, start_ns=start):
+                    while not self._stop.is_set():
+                        try:
+                            q.put(msg, timeout=0.1)
+                            break
+                        except queue.Full:
+                            continue
+                    if self._stop.is_set():
+                        return
+                q.put(done)
+            except Exception as e:   # handed to the playback thread
+                q.put(e)
+
+        threading.Thread(target=produce, name='bag_read_ahead', daemon=True).start()
+        while not self._stop.is_set():
+            try:
+                item = q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if item is done:
+                return
+            if isinstance(item, Exception):
+                raise item
+            yield item
 
     def _await_subscribers(self, pubs: dict) -> None:
         deadline = time.monotonic() + self.wait_for_subscribers

@@ -49,6 +49,14 @@ class Schedule:
         return Schedule(stamp_ns, wall_now_ns, rate, self.as_fast_as_possible)
 
 
+def cdr_stamp_ns(data: bytes) -> int:
+    """header.stamp of a CDR message whose first field is a std_msgs/Header, without decoding."""
+    if len(data) < 12 or data[0] != 0:
+        raise ValueError('not a CDR-encapsulated message')
+    sec, nsec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, 4)
+    return sec * 1_000_000_000 + nsec
+
+
 def restamp_cdr(data: bytes, stamp_ns: int) -> bytes:
     """Replace header.stamp in a CDR message whose first field is a std_msgs/Header.
 
@@ -59,4 +67,4 @@ def restamp_cdr(data: bytes, stamp_ns: int) -> bytes:
         raise ValueError('not a CDR-encapsulated message')
     endian = '<' if data[1] & 1 else '>'
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    return data[:4] + struct.pack(endian + 'iI', sec, nsec) + data[12:]
+    return b''.join((data[:4], struct.pack(endian + 'iI', sec, nsec), memoryview(data)[12:]))
