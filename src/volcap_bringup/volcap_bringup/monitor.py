@@ -65,8 +65,7 @@ class StreamMonitor(Node):
             for stream in STREAMS:
                 recv = np.array([a[0] for a in self.arrivals[(cam, stream)]], dtype=np.int64)
                 row[f'{stream}_frames'] = int(len(recv))
-                gaps = np.diff(recv)
-                row[f'{stream}_hz'] = float(1e9 / np.median(gaps)) if len(gaps) else 0.0
+                row[f'{stream}_hz'] = delivered_rate(recv)
             per_camera[cam] = row
         lat = np.array(self.complete_latency_ns, dtype=np.float64) / 1e6
         return {'cameras': per_camera,
@@ -75,6 +74,14 @@ class StreamMonitor(Node):
                 'late_frames': self.sync.stats.late,
                 'latency_ms_median': float(np.median(lat)) if lat.size else None,
                 'latency_ms_p95': float(np.percentile(lat, 95)) if lat.size else None}
+
+
+def delivered_rate(receive_ns: np.ndarray, pause_s: float = 0.3) -> float:
+    """Mean frames per second over the stretches of continuous delivery (pauses longer than
+    ``pause_s``, such as the gaps between the parts of a studio session, are left out)."""
+    gaps = np.diff(receive_ns) / 1e9
+    steady = gaps[gaps < pause_s]
+    return float(len(steady) / steady.sum()) if steady.size and steady.sum() > 0 else 0.0
 
 
 def format_rates(summary: dict) -> str:
