@@ -165,7 +165,7 @@ def test_board_is_detectable_by_the_camera_it_faces(studio_bag):
     assert best >= 20
 
 
-def test_every_camera_sees_the_board_in_some_poses():
+def test_every_camera_sees_the_board_in_some_poses(shared_data):
     cfg = SynthConfig(board_poses=12)
     rng = np.random.default_rng(0)
     rig, T_studio_color = make_rig(cfg, rng)
@@ -216,7 +216,7 @@ def _digest(path):
     return h.hexdigest()
 
 
-def test_synth_is_deterministic_for_a_seed(tmp_path):
+def test_synth_is_deterministic_for_a_seed(tmp_path, shared_data):
     cfg = dict(cameras=2, frames=1, board_poses=1, background_frames=0)
     a = synthesize(tmp_path / 'a', SynthConfig(seed=5, **cfg), progress=False)
     b = synthesize(tmp_path / 'b', SynthConfig(seed=5, **cfg), progress=False)
