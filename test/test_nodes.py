@@ -113,9 +113,12 @@ def test_playback_speed(studio_bag, probe_factory, procs, params, expected):
     arrivals = [t for t, _ in probe.got['cam2/color/camera_info']]
     stamps = [stamp_to_ns(m.header.stamp) / 1e9 for _, m in probe.got['cam2/color/camera_info']]
     assert len(stamps) >= 4
-    # Wall-clock gap over bag-time gap, per interval; the median shrugs off one delayed delivery.
-    ratios = np.diff(arrivals) / np.diff(stamps)
-    assert np.median(ratios) == pytest.approx(expected, abs=0.1)
+    # Wall-clock over bag time across the two ~1 s gaps between session parts, where a few ms of
+    # delivery jitter hardly matter.
+    wall, bag = np.diff(arrivals), np.diff(stamps)
+    long = bag > 0.5
+    assert long.sum() == 2
+    assert wall[long].sum() / bag[long].sum() == pytest.approx(expected, abs=0.05)
 
 
 def test_remap_and_namespace(studio_bag, probe_factory, procs):
@@ -216,4 +219,17 @@ def test_synthetic_rig_publishes_live(probe_factory, procs, shared_data):
     assert abs(stamps[-1] / 1e9 - time.time()) < 5          # live stamps, not bag stamps
     assert np.diff(stamps).min() > 0.05e9                       # ~10 fps
     assert image_to_numpy(probe.got['cam0/color/image_raw'][0][1]).shape == (720, 1280, 3)
+    assert stop(procs.pop()) == 0
+
+
+def test_start_offset_and_loop(studio_bag, probe_factory, procs):
+    gt = GroundTruth(studio_bag)
+    capture = {f['stamps']['cam4']['color'] for f in gt.frames_in('capture')}
+    offset = (min(capture) - gt.frames[0]['stamps']['cam4']['color']) / 1e9 - 0.01
+    probe = probe_factory([('cam4/color/camera_info', CameraInfo, qos.SENSOR)])
+    play(procs, studio_bag, topics=['cam4/color/camera_info'], start_offset=offset, loop=True,
+         as_fast_as_possible=True, exit_when_done=False)
+    assert probe.spin_until(lambda: len(probe.got['cam4/color/camera_info']) >= 6, 60)
+    stamps = [stamp_to_ns(m.header.stamp) for _, m in probe.got['cam4/color/camera_info']]
+    assert set(stamps) == capture            # only the capture part, again and again
     assert stop(procs.pop()) == 0

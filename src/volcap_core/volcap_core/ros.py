@@ -72,5 +72,5 @@ class Diagnostics:
         self._republish()
 
     def _republish(self) -> None:
-        if self._last is not None:
+        if self._last is not None and self.node.context.ok():
             self.pub.publish(diagnostic_array([self._last], time.time_ns()))

@@ -69,6 +69,8 @@ class BagPlayer(Node):
             self.exit_code = 1
             self.diagnostics.report('error', str(e), published=self.published)
         except Exception as e:  # a bug must not leave the node silently idle
+            if not self.context.ok():
+                return      # shutting down (Ctrl-C): publishing stopped working, nothing failed
             self.exit_code = 1
             self.diagnostics.report('error', f'playback failed: {type(e).__name__}: {e}', published=self.published)
         if self.exit_when_done and not self._stop.is_set():
@@ -114,6 +116,8 @@ class BagPlayer(Node):
                                             bag_time=f'{(msg.stamp_ns - reader.start_ns) / 1e9:.3f}')
             if not self.loop:
                 break
+        if self._stop.is_set() or not self.context.ok():
+            return
         self.diagnostics.report('ok', f'finished: {self.published} messages published', published=self.published)
         self.get_logger().info(f'finished: {self.published} messages published')
 

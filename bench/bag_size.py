@@ -1,0 +1,65 @@
+"""Bag size and write speed per second of 8-camera capture, uncompressed and zstd (MCAP chunks).
+
+    .venv/bin/python bench/bag_size.py
+
+Re-writes the 30 frame sets (1 s at 30 fps) of bench/transport.py's synthetic bag through
+volcap's BagWriter, and times a bare rosbags Writer on the same messages for the ratio.
+"""
+from __future__ import annotations
+
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from transport import ensure_bag  # noqa: E402
+
+from volcap_driver.bag_io import BagReader, BagWriter  # noqa: E402
+
+
+def main() -> int:
+    bag = ensure_bag(Path(__file__).resolve().parents[1] / 'bench_out')
+    with BagReader(bag) as reader:
+        topics = reader.topics
+        msgs = list(reader.messages())
+        seconds = 30 / 30.0
+    raw_mb = sum(len(m.data) for m in msgs) / 1e6
+    print(f'{len(msgs)} messages, {raw_mb:.0f} MB of serialised messages = {seconds:.0f} s of 8-camera capture')
+    print(f'{"writer":<28} {"compression":<12} {"MB per s of capture":>20} {"write s":>8} {"ratio to bare":>14}')
+    tmp = Path(tempfile.mkdtemp())
+    try:
+        for compression in ('none', 'zstd'):
+            t0 = time.perf_counter()
+            out = tmp / f'bare_{compression}'
+            w = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
+            if compression == 'zstd':
+                w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            with w:
+                store = get_typestore(Stores.ROS2_JAZZY)
+                conns = {t: w.add_connection(t, ty, typestore=store) for t, ty in topics.items()}
+                for m in msgs:
+                    w.write(conns[m.topic], m.stamp_ns, m.data)
+            bare = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            out = tmp / f'volcap_{compression}'
+            with BagWriter(out, compression) as writer:
+                for t, ty in topics.items():
+                    writer.add_topic(t, ty)
+                for m in msgs:
+                    writer.write(m.topic, m.data, m.stamp_ns)
+            ours = time.perf_counter() - t0
+            size = sum(f.stat().st_size for f in out.glob('*.mcap')) / 1e6
+            print(f'{"rosbags Writer (bare)":<28} {compression:<12} {"":>20} {bare:8.2f} {"":>14}')
+            print(f'{"volcap BagWriter":<28} {compression:<12} {size / seconds:20.0f} {ours:8.2f} {ours / bare:14.2f}')
+    finally:
+        shutil.rmtree(tmp)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
