@@ -58,7 +58,7 @@ def cmd_info(args) -> int:
 
 def cmd_demo(args) -> int:
     import rclpy
-    import yaml
+    from rclpy.executors import SingleThreadedExecutor
 
     from volcap_driver.bag_io import BagReader
     from volcap_driver.synth.session import GroundTruth, synthesize
@@ -83,20 +83,23 @@ def cmd_demo(args) -> int:
     transport.configure()
     rclpy.init()
     monitor = StreamMonitor(cameras)
+    executor = SingleThreadedExecutor()
+    executor.add_node(monitor)
     player = start_node('volcap_driver', 'bag_player', {'bag': str(bag), 'exit_when_done': True,
                                                          'wait_for_subscribers': 10.0,
                                                          'topics': monitor.topics})
     try:
         deadline = time.monotonic() + duration + 60
         while player.poll() is None and time.monotonic() < deadline:
-            rclpy.spin_once(monitor, timeout_sec=0.05)
+            executor.spin_once(timeout_sec=0.05)
         end = time.monotonic() + 0.5
         while time.monotonic() < end:
-            rclpy.spin_once(monitor, timeout_sec=0.05)
+            executor.spin_once(timeout_sec=0.05)
     finally:
         code = stop(player)
         monitor.finish()
         summary = monitor.summary()
+        executor.shutdown()
         monitor.destroy_node()
         rclpy.try_shutdown()
     print(format_rates(summary))

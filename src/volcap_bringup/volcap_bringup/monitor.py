@@ -68,7 +68,11 @@ class StreamMonitor(Node):
                 row[f'{stream}_hz'] = delivered_rate(recv)
             per_camera[cam] = row
         lat = np.array(self.complete_latency_ns, dtype=np.float64) / 1e6
+        per_image = np.array([recv - stamp for arr in self.arrivals.values() for recv, stamp in arr],
+                             dtype=np.float64) / 1e6
         return {'cameras': per_camera,
+                'image_latency_ms_median': float(np.median(per_image)) if per_image.size else None,
+                'image_latency_ms_p95': float(np.percentile(per_image, 95)) if per_image.size else None,
                 'frame_sets_complete': self.sync.stats.complete,
                 'frame_sets_incomplete': self.sync.stats.incomplete,
                 'late_frames': self.sync.stats.late,

@@ -19,7 +19,7 @@ from volcap_core.poses import invert, transform_points
 
 from .scene import Light, SceneObject, sample_bilinear
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
+LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
 @dataclass
@@ -255,7 +255,7 @@ class CameraView:
                 continue
             z[hits.idx], obj[hits.idx] = hits.t[hits.idx], hits.obj[hits.idx]
             cos_inc[hits.idx] = np.abs(np.einsum('ij,ij->i', hits.normals, unit[hits.idx]))
-            ir[hits.idx] = hits.albedo @ LUMA.astype(np.float32)
+            ir[hits.idx] = hits.albedo @ LUMA
         z, cos_inc, ir = z.reshape(h, w), cos_inc.reshape(h, w), ir.reshape(h, w)
         in_range = np.isfinite(z) & (z >= tof.min_range) & (z <= tof.max_range)
         clean = np.where(in_range, z, 0.0).astype(np.float32)
@@ -295,7 +295,7 @@ class CameraView:
         ok = np.isfinite(zs) & (zs >= tof.min_range) & (zs <= tof.max_range)
         amp = np.zeros(len(sub_rays), np.float32)
         unit = sub_rays[sh.idx] / np.linalg.norm(sub_rays[sh.idx], axis=1, keepdims=True)
-        amp[sh.idx] = (sh.albedo @ LUMA.astype(np.float32)) * np.abs(np.einsum('ij,ij->i', sh.normals, unit))
+        amp[sh.idx] = (sh.albedo @ LUMA) * np.abs(np.einsum('ij,ij->i', sh.normals, unit))
         amp = amp.reshape(-1, s * s)
         wgt = np.where(ok, amp / np.where(ok, zs, 1.0) ** 2, 0.0)
         wsum = wgt.sum(axis=1)
