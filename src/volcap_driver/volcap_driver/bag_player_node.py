@@ -90,8 +90,8 @@ class BagPlayer(Node):
                                                                                      self.namespace_prefix), profile)
         self._await_subscribers(pubs)
         start = reader.start_ns + int(self.start_offset * 1e9)
-        self.get_logger().info(f'playing {reader.message_count} messages on {len(pubs)} topics, '
-                               f'{(reader.end_ns - reader.start_ns) / 1e9:.2f} s of bag time')
+        self.get_logger().info(f'playing {len(pubs)} of {len(reader.topics)} topics of a {reader.message_count}-'
+                               f'message bag, {(reader.end_ns - reader.start_ns) / 1e9:.2f} s of bag time')
         rate = self.get_parameter('rate').value
         last_report = time.monotonic()
         while not self._stop.is_set():

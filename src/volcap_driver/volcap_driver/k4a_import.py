@@ -72,38 +72,47 @@ def import_k4a(mkv: str | Path, out: str | Path, camera: str = 'cam0', max_frame
         if depth_s.codec_context.width != cam.depth.width or depth_s.codec_context.height != cam.depth.height:
             raise K4AImportError(f'depth track is {depth_s.codec_context.width}x{depth_s.codec_context.height}, '
                                  f'calibration mode {depth_mode} says {cam.depth.width}x{cam.depth.height}')
-        n_color = n_depth = 0
-        with BagWriter(out) as bag:
-            bag.add_topic(topics.RIG, 'std_msgs/msg/String', latched=True)
-            bag.write(topics.RIG, String(data=rig.to_yaml()), base_ns)
-            bar = tqdm(desc=f'importing {mkv.name}', unit='frame', disable=not progress)
-            for packet in container.demux(color_s, depth_s):
-                if packet.pts is None or packet.size == 0:
-                    continue
-                stamp = base_ns + int(round(float(packet.pts * packet.time_base) * 1e9))
-                if packet.stream is color_s:
-                    frames = packet.decode()
-                    if not frames:
-                        continue
-                    rgb = frames[0].to_ndarray(format='rgb24')
-                    bag.write(topics.camera_topic(camera, topics.COLOR_IMAGE),
-                              numpy_to_image(rgb, 'rgb8', stamp, cam.color_frame), stamp)
-                    bag.write(topics.camera_topic(camera, topics.COLOR_INFO),
-                              camera_model_to_info(cam.color, stamp, cam.color_frame), stamp)
-                    n_color += 1
-                else:
-                    raw = bytes(packet)
-                    expected = cam.depth.width * cam.depth.height * 2
-                    if len(raw) != expected:
-                        raise K4AImportError(f'depth packet at {stamp} has {len(raw)} bytes, expected {expected}')
-                    depth = np.frombuffer(raw, '>u2').reshape(cam.depth.height, cam.depth.width).astype(np.uint16)
-                    bag.write(topics.camera_topic(camera, topics.DEPTH_IMAGE),
-                              numpy_to_image(depth, '16UC1', stamp, cam.depth_frame), stamp)
-                    bag.write(topics.camera_topic(camera, topics.DEPTH_INFO),
-                              camera_model_to_info(cam.depth, stamp, cam.depth_frame), stamp)
-                    n_depth += 1
-                    bar.update(1)
-                if max_frames is not None and min(n_color, n_depth) >= max_frames:
-                    break
-            bar.close()
+        try:
+            n_color, n_depth = _write_bag(container, out, rig, cam, camera, color_s, depth_s, base_ns, max_frames,
+                                          progress, mkv.name)
+        except BaseException:
+            shutil.rmtree(out, ignore_errors=True)   # no half-written bag left behind
+            raise
     return ImportSummary(out, n_color, n_depth, rig)
+
+
+def _write_bag(container, out: Path, rig: Rig, cam, camera: str, color_s, depth_s, base_ns: int,
+               max_frames: int | None, progress: bool, name: str) -> tuple[int, int]:
+    n_color = n_depth = 0
+    expected = cam.depth.width * cam.depth.height * 2
+    with BagWriter(out) as bag, tqdm(desc=f'importing {name}', unit='frame', disable=not progress) as bar:
+        bag.add_topic(topics.RIG, 'std_msgs/msg/String', latched=True)
+        bag.write(topics.RIG, String(data=rig.to_yaml()), base_ns)
+        for packet in container.demux(color_s, depth_s):
+            if packet.pts is None or packet.size == 0:
+                continue
+            stamp = base_ns + int(round(float(packet.pts * packet.time_base) * 1e9))
+            if packet.stream is color_s:
+                frames = packet.decode()
+                if not frames:
+                    continue
+                rgb = frames[0].to_ndarray(format='rgb24')
+                bag.write(topics.camera_topic(camera, topics.COLOR_IMAGE),
+                          numpy_to_image(rgb, 'rgb8', stamp, cam.color_frame), stamp)
+                bag.write(topics.camera_topic(camera, topics.COLOR_INFO),
+                          camera_model_to_info(cam.color, stamp, cam.color_frame), stamp)
+                n_color += 1
+            else:
+                raw = bytes(packet)
+                if len(raw) != expected:
+                    raise K4AImportError(f'depth packet at {stamp} has {len(raw)} bytes, expected {expected}')
+                depth = np.frombuffer(raw, '>u2').reshape(cam.depth.height, cam.depth.width).astype(np.uint16)
+                bag.write(topics.camera_topic(camera, topics.DEPTH_IMAGE),
+                          numpy_to_image(depth, '16UC1', stamp, cam.depth_frame), stamp)
+                bag.write(topics.camera_topic(camera, topics.DEPTH_INFO),
+                          camera_model_to_info(cam.depth, stamp, cam.depth_frame), stamp)
+                n_depth += 1
+                bar.update(1)
+            if max_frames is not None and min(n_color, n_depth) >= max_frames:
+                break
+    return n_color, n_depth

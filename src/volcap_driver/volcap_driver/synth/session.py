@@ -4,8 +4,10 @@ the sidecar back.
 Layout of ``DIR``: ``metadata.yaml`` and ``DIR.mcap`` (the bag), ``ground_truth/ground_truth.yaml``
 (rig, T_world_color per camera, colour responses, ToF model, board and subject poses, frame
 stamps), ``ground_truth/frames/NNNNNN.npz`` (per camera: clean depth, flying / speckle / dropped
-masks and subject masks) and ``ground_truth/subject.ply``. The world frame is cam0's colour
-optical frame (DESIGN.md); ``T_studio_world`` places it in the floor-level studio frame.
+masks and subject masks), ``ground_truth/subject.ply`` and ``ground_truth/preview.png`` (every
+camera's colour and depth in the first capture frame, or the last frame when there is none).
+The world frame is cam0's colour optical frame (DESIGN.md); ``T_studio_world`` places it in the
+floor-level studio frame.
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import open3d as o3d
 import yaml
@@ -97,6 +100,9 @@ def _write_frames(bag: BagWriter, rig: Rig, renderer: StudioRenderer, plans: lis
             bag.write(topics.PHASE, String(data=yaml.safe_dump({'phase': phase, 'frames': count})),
                       plan.stamp_ns - 1_000_000)
         frames = renderer.render(plan)
+        preview = gt_frames.parent / 'preview.png'
+        if not preview.exists() and (plan.phase == 'capture' or plan is plans[-1]):
+            write_preview(preview, rig, frames)
         out = []
         arrays = {}
         for cam in rig.cameras:
@@ -120,6 +126,26 @@ def _write_frames(bag: BagWriter, rig: Rig, renderer: StudioRenderer, plans: lis
                           'stamps': {n: {'color': f.color_stamp_ns, 'depth': f.depth_stamp_ns}
                                      for n, f in frames.items()}})
     return frames_gt
+
+
+def write_preview(path: Path, rig: Rig, frames: dict) -> None:
+    """Contact sheet of one frame set: each camera's colour over its depth (0-4 m, turbo)."""
+    tiles = []
+    for cam in rig.cameras:
+        f = frames[cam.name]
+        color = cv2.resize(f.color, (320, 180), interpolation=cv2.INTER_AREA)[:, :, ::-1]
+        depth = np.clip(f.depth.depth_mm / 4000.0 * 255, 0, 255).astype(np.uint8)
+        depth = cv2.applyColorMap(depth, cv2.COLORMAP_TURBO)
+        depth[f.depth.depth_mm == 0] = 0
+        depth = cv2.resize(depth, (320, 288), interpolation=cv2.INTER_NEAREST)
+        tile = np.vstack([color, depth])
+        for colour, width in (((0, 0, 0), 4), ((255, 255, 255), 1)):   # outlined, legible on any background
+            cv2.putText(tile, cam.name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, width, cv2.LINE_AA)
+        tiles.append(tile)
+    while len(tiles) % 4:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.hstack(tiles[i:i + 4]) for i in range(0, len(tiles), 4)]
+    cv2.imwrite(str(path), np.vstack(rows))
 
 
 def _write_ground_truth(gt_dir: Path, cfg: SynthConfig, rig: Rig, renderer: StudioRenderer, board: BoardConfig,

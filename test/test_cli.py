@@ -1,0 +1,36 @@
+"""The `volcap` command line: clear errors for bad input, and the info listing."""
+import subprocess
+import sys
+
+import cv2
+
+
+def volcap(*args):
+    return subprocess.run([sys.executable, '-m', 'volcap_bringup.cli', *map(str, args)], capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_import_of_a_file_that_is_not_a_k4a_recording(tmp_path, shared_data):
+    run = volcap('import-k4a', shared_data / 'charuco' / 'choriginal.jpg', '--out', tmp_path / 'x')
+    assert run.returncode == 2
+    assert 'volcap import-k4a: error:' in run.stderr and 'K4A' in run.stderr
+    assert not (tmp_path / 'x').exists()
+
+
+def test_synth_rejects_bad_options(tmp_path):
+    run = volcap('synth', '--out', tmp_path / 'x', '--cameras', '0')
+    assert run.returncode == 2 and 'at least one camera' in run.stderr
+    run = volcap('info', tmp_path / 'nothing')
+    assert run.returncode == 2 and 'does not exist' in run.stderr
+
+
+def test_synth_info_and_preview(tmp_path, shared_data):
+    run = volcap('synth', '--out', tmp_path / 's', '--cameras', '2', '--frames', '1', '--board-poses', '0',
+                 '--background-frames', '1', '--quiet')
+    assert run.returncode == 0, run.stderr
+    assert 'MB per second of capture' in run.stdout
+    preview = cv2.imread(str(tmp_path / 's' / 'ground_truth' / 'preview.png'))
+    assert preview.shape == (180 + 288, 4 * 320, 3) and preview[:180, :640].mean() > 20
+    run = volcap('info', tmp_path / 's')
+    assert run.returncode == 0
+    assert 'cam1/depth/image_raw' in run.stdout and '(latched)' in run.stdout
