@@ -40,7 +40,7 @@ class SyntheticRig(Node):
                                     'Azure Kinect factory calibration JSON the rig is modelled on', read_only=True),
             bunny_mesh=declare(self, 'bunny_mesh', default_bunny_mesh(), 'mesh of the bunny scene', read_only=True),
         )
-        fps = declare(self, 'fps', 30.0, 'frame sets per second', 0.1, 120.0)
+        fps = declare(self, 'fps', 30.0, 'frame sets per second', 0.1, 120.0, read_only=True)
         self.diagnostics = Diagnostics(self, 'synthetic rig')
         rng = np.random.default_rng(cfg.seed)
         rig, poses = make_rig(cfg, rng)
