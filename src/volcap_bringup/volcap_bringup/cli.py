@@ -45,9 +45,9 @@ def cmd_import_k4a(args) -> int:
 def cmd_info(args) -> int:
     from volcap_driver.bag_io import BagReader
     with BagReader(args.bag) as bag:
-        counts = {}
-        for msg in bag.messages():
-            counts[msg.topic] = counts.get(msg.topic, 0) + 1
+        counts = bag.topic_counts
+        if bag.damage:
+            print(f'damaged bag: {bag.damage}')
         duration = (bag.end_ns - bag.start_ns) / 1e9
         print(f'{args.bag}: {bag.message_count} messages, {duration:.3f} s')
         latched = bag.latched_topics

@@ -45,10 +45,6 @@ class CameraModel:
     def distortion_model(self) -> str:
         return DISTORTION_MODELS[len(self.dist)]
 
-    @property
-    def size(self) -> tuple[int, int]:
-        return self.width, self.height
-
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3) with z > 0, distortion applied."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)

@@ -26,10 +26,6 @@ class RigCamera:
     serial: str = ''
 
     @property
-    def namespace(self) -> str:
-        return self.name
-
-    @property
     def color_frame(self) -> str:
         return f'{self.name}_color_optical_frame'
 

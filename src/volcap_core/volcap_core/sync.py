@@ -24,10 +24,6 @@ class FrameSet:
     def complete(self) -> bool:
         return not self.missing
 
-    @property
-    def cameras(self) -> list[str]:
-        return sorted({cam for cam, _ in self.items})
-
     def get(self, camera: str, stream: Hashable = None):
         return self.items.get((camera, stream))
 

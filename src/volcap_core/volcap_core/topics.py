@@ -23,7 +23,8 @@ DIAGNOSTICS = 'volcap/diagnostics'
 LATCHED = (RIG, CALIBRATION, CAMERA_POSES)
 
 # Session phases announced on PHASE (std_msgs/String YAML) at the first stamp of each part.
-PHASES = ('clean_plate', 'calibration', 'capture')
+CLEAN_PLATE, CALIBRATION_PHASE, CAPTURE = 'clean_plate', 'calibration', 'capture'
+PHASES = (CLEAN_PLATE, CALIBRATION_PHASE, CAPTURE)
 
 
 def camera_topic(camera: str, topic: str) -> str:

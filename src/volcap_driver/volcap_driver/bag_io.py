@@ -219,6 +219,16 @@ class BagReader:
         return self._end if self._reader is None else self._reader.end_time
 
     @property
+    def topic_counts(self) -> dict[str, int]:
+        """Messages per topic, from the bag's metadata (or the scan of a damaged MCAP)."""
+        if self._reader is None:
+            return dict(self._counts)
+        counts = {}
+        for c in self._reader.connections:
+            counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+        return counts
+
+    @property
     def message_count(self) -> int:
         return sum(self._counts.values()) if self._reader is None else self._reader.message_count
 
@@ -242,7 +252,3 @@ class BagReader:
             if (topics is None or topic in topics) and (start_ns is None or stamp >= start_ns) \
                     and (stop_ns is None or stamp < stop_ns):
                 yield BagMessage(topic, msgtype, int(stamp), data)
-
-    def first(self, topic: str) -> BagMessage | None:
-        """First message on a topic, e.g. the rig description."""
-        return next(self.messages([topic]), None)

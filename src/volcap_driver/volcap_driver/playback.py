@@ -49,22 +49,22 @@ class Schedule:
         return Schedule(stamp_ns, wall_now_ns, rate, self.as_fast_as_possible)
 
 
-def cdr_stamp_ns(data: bytes) -> int:
-    """header.stamp of a CDR message whose first field is a std_msgs/Header, without decoding."""
+def _stamp_format(data: bytes) -> str:
+    # 4-byte CDR encapsulation header (byte 1: little-endian flag), then stamp.sec (int32) and
+    # stamp.nanosec (uint32) of the leading std_msgs/Header.
     if len(data) < 12 or data[0] != 0:
         raise ValueError('not a CDR-encapsulated message')
-    sec, nsec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, 4)
+    return '<iI' if data[1] & 1 else '>iI'
+
+
+def cdr_stamp_ns(data: bytes) -> int:
+    """header.stamp of a CDR message whose first field is a std_msgs/Header, without decoding."""
+    sec, nsec = struct.unpack_from(_stamp_format(data), data, 4)
     return sec * 1_000_000_000 + nsec
 
 
 def restamp_cdr(data: bytes, stamp_ns: int) -> bytes:
-    """Replace header.stamp in a CDR message whose first field is a std_msgs/Header.
-
-    The 4-byte encapsulation header is followed by stamp.sec (int32) and stamp.nanosec (uint32),
-    so the stamp can be patched without decoding the (multi-MB) message.
-    """
-    if len(data) < 12 or data[0] != 0:
-        raise ValueError('not a CDR-encapsulated message')
-    endian = '<' if data[1] & 1 else '>'
+    """Replace header.stamp in a CDR message whose first field is a std_msgs/Header, patching
+    the bytes instead of decoding the (multi-MB) message; one copy."""
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    return b''.join((data[:4], struct.pack(endian + 'iI', sec, nsec), memoryview(data)[12:]))
+    return b''.join((data[:4], struct.pack(_stamp_format(data), sec, nsec), memoryview(data)[12:]))

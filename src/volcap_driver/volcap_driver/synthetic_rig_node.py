@@ -43,11 +43,12 @@ class SyntheticRig(Node):
         fps = declare(self, 'fps', 30.0, 'frame sets per second', 0.1, 120.0, read_only=True)
         self.diagnostics = Diagnostics(self, 'synthetic rig')
         rng = np.random.default_rng(cfg.seed)
+        board = BoardConfig.from_yaml()
         rig, poses = make_rig(cfg, rng)
-        plans = session_plan(cfg, BoardConfig.from_yaml(), rng)
+        plans = session_plan(cfg, board, rng)
         if not plans:
             raise ValueError('nothing to render: frames, board_poses and background_frames are all 0')
-        renderer = StudioRenderer(cfg, rig, poses, BoardConfig.from_yaml(), rng)
+        renderer = StudioRenderer(cfg, rig, poses, board, rng)
         self.get_logger().info(f'rendering {len(plans)} frame sets for {cfg.cameras} cameras...')
         self.frames = []
         for plan in plans:

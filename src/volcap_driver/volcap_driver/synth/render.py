@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import functools
+
 import cv2
 import numpy as np
 import open3d as o3d
@@ -162,23 +164,31 @@ class ColorResponse:
                 for k, v in d.items()}
 
     def vignette(self, width: int, height: int) -> np.ndarray:
-        u, v = np.meshgrid(np.arange(width) - (width - 1) / 2, np.arange(height) - (height - 1) / 2)
-        r2 = (u ** 2 + v ** 2) / ((width / 2) ** 2 + (height / 2) ** 2)
-        return 1.0 - self.vignetting[0] * r2 - self.vignetting[1] * r2 ** 2
+        return _vignette(width, height, *self.vignetting)
 
     def apply(self, radiance: np.ndarray, rng: np.random.Generator, noise: bool = True) -> np.ndarray:
         """(H, W, 3) linear radiance -> (H, W, 3) uint8."""
         h, w = radiance.shape[:2]
-        x = (radiance * self.vignette(w, h)[:, :, None]).astype(np.float32)
+        x = radiance * self.vignette(w, h)
         if self.blur_sigma_px > 0:
             x = cv2.GaussianBlur(x, (0, 0), self.blur_sigma_px)
         x = x * np.float32(self.gain) * np.asarray(self.white_balance, np.float32)
         if noise:
             sigma = np.sqrt(self.read_noise ** 2 + self.shot_noise ** 2 * np.clip(x, 0, None))
             x = x + sigma * rng.standard_normal(x.shape, dtype=np.float32)
-        x = x @ np.asarray(self.crosstalk, np.float32).T
+        x = cv2.transform(x, np.asarray(self.crosstalk, np.float32))
         x = np.clip(x, 0.0, 1.0) ** np.float32(1.0 / self.gamma)
         return np.round(x * 255.0).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=16)
+def _vignette(width: int, height: int, a: float, b: float) -> np.ndarray:
+    """(H, W, 1) float32 radial fall-off 1 - a r^2 - b r^4, r = 1 at the corners (made once per camera)."""
+    u, v = np.meshgrid(np.arange(width) - (width - 1) / 2, np.arange(height) - (height - 1) / 2)
+    r2 = (u ** 2 + v ** 2) / ((width / 2) ** 2 + (height / 2) ** 2)
+    out = (1.0 - a * r2 - b * r2 ** 2).astype(np.float32)[:, :, None]
+    out.flags.writeable = False
+    return out
 
 
 @dataclass
@@ -223,6 +233,7 @@ class CameraView:
         self.origin = T_world_cam[:3, 3].astype(np.float32)
         self.rays_cam = rays_cam.astype(np.float32)
         self.dirs = self.rays_cam.reshape(-1, 3) @ self.R.T
+        self.unit_dirs = self.dirs / np.linalg.norm(self.dirs, axis=1, keepdims=True)
         self.static = static.cast(self.origin, self.dirs)
         self._static_radiance = None
 
@@ -249,12 +260,11 @@ class CameraView:
         h, w = self.cam.height, self.cam.width
         z, obj = self.static.t.copy(), self.static.obj.copy()
         cos_inc, ir = np.zeros(h * w, np.float32), np.zeros(h * w, np.float32)
-        unit = self.dirs / np.linalg.norm(self.dirs, axis=1, keepdims=True)
         for hits in (self.static, self._dynamic(dynamic)):
             if hits is None or not hits.idx.size:
                 continue
             z[hits.idx], obj[hits.idx] = hits.t[hits.idx], hits.obj[hits.idx]
-            cos_inc[hits.idx] = np.abs(np.einsum('ij,ij->i', hits.normals, unit[hits.idx]))
+            cos_inc[hits.idx] = np.abs(np.einsum('ij,ij->i', hits.normals, self.unit_dirs[hits.idx]))
             ir[hits.idx] = hits.albedo @ LUMA
         z, cos_inc, ir = z.reshape(h, w), cos_inc.reshape(h, w), ir.reshape(h, w)
         in_range = np.isfinite(z) & (z >= tof.min_range) & (z <= tof.max_range)
@@ -311,17 +321,16 @@ class CameraView:
 
 def _speckle(measured: np.ndarray, flying: np.ndarray, tof: 'ToFModel', rng) -> np.ndarray:
     """Occasional multi-camera interference: a few small blobs of grossly wrong depth."""
-    speckle = np.zeros(measured.shape, bool)
     if rng.random() >= tof.speckle_prob:
-        return speckle
+        return np.zeros(measured.shape, bool)
     valid_v, valid_u = np.nonzero(measured > 0)
     if valid_v.size == 0:
-        return speckle
-    blob = np.zeros(measured.shape, np.uint8)
-    for k in rng.choice(valid_v.size, size=min(tof.speckle_blobs, valid_v.size), replace=False):
-        blob[:] = 0
-        cv2.circle(blob, (int(valid_u[k]), int(valid_v[k])), int(rng.integers(1, 3)), 1, -1)
-        sel = blob.astype(bool) & (measured > 0) & ~flying
-        measured[sel] += rng.uniform(-0.3, 0.3)
-        speckle |= sel
+        return np.zeros(measured.shape, bool)
+    picks = rng.choice(valid_v.size, size=min(tof.speckle_blobs, valid_v.size), replace=False)
+    labels = np.zeros(measured.shape, np.uint8)        # blob k drawn as k + 1
+    for k, i in enumerate(picks):
+        cv2.circle(labels, (int(valid_u[i]), int(valid_v[i])), int(rng.integers(1, 3)), k + 1, -1)
+    offsets = np.concatenate([[0.0], rng.uniform(-0.3, 0.3, len(picks))]).astype(np.float32)
+    speckle = (labels > 0) & (measured > 0) & ~flying
+    measured[speckle] += offsets[labels[speckle]]
     return speckle

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from volcap_calib.board import BoardConfig
 from volcap_core import topics
+from volcap_core.topics import CAPTURE
 from volcap_core.conversions import camera_model_to_info, numpy_to_image
 from volcap_core.poses import invert, matrix_from_list, matrix_to_list
 from volcap_core.rig import Rig
@@ -42,7 +43,6 @@ class SynthSummary:
     frame_sets: int
     messages: int
     bag_bytes: int
-    capture_seconds: float
 
 
 def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True, overwrite: bool = False) -> SynthSummary:
@@ -72,10 +72,8 @@ def synthesize(out: str | Path, cfg: SynthConfig, progress: bool = True, overwri
         os.replace(bag_dir, out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    capture = [p for p in plans if p.phase == 'capture']
-    seconds = len(capture) / cfg.fps if capture else len(plans) / cfg.fps
     size = sum(f.stat().st_size for f in out.glob('*.mcap'))
-    return SynthSummary(out, len(plans), count, size, seconds)
+    return SynthSummary(out, len(plans), count, size)
 
 
 def _add_topics(bag: BagWriter, rig: Rig) -> None:
@@ -101,7 +99,7 @@ def _write_frames(bag: BagWriter, rig: Rig, renderer: StudioRenderer, plans: lis
                       plan.stamp_ns - 1_000_000)
         frames = renderer.render(plan)
         preview = gt_frames.parent / 'preview.png'
-        if not preview.exists() and (plan.phase == 'capture' or plan is plans[-1]):
+        if not preview.exists() and (plan.phase == CAPTURE or plan is plans[-1]):
             write_preview(preview, rig, frames)
         out = []
         arrays = {}

@@ -16,7 +16,7 @@ from volcap_calib.board import BoardConfig
 from volcap_core.camera import CameraModel
 from volcap_core.poses import invert, look_at, make_transform, perturb
 from volcap_core.rig import Rig, RigCamera, rig_camera_from_k4a
-from volcap_core.topics import camera_names
+from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, CLEAN_PLATE, camera_names
 
 from . import scene as sc
 from .render import CameraView, ColorResponse, DepthRender, SceneRaycaster, ToFModel
@@ -135,15 +135,15 @@ def session_plan(cfg: SynthConfig, board: BoardConfig, rng: np.random.Generator)
     period = int(round(1e9 / cfg.fps))
     plans, t = [], START_NS
     for k in range(cfg.background_frames):
-        plans.append(FramePlan(len(plans), 'clean_plate', t))
+        plans.append(FramePlan(len(plans), CLEAN_PLATE, t))
         t += period
     t += PHASE_GAP_NS
     for T in board_poses(cfg, board, rng):
-        plans.append(FramePlan(len(plans), 'calibration', t, board_pose=T))
+        plans.append(FramePlan(len(plans), CALIBRATION_PHASE, t, board_pose=T))
         t += period
     t += PHASE_GAP_NS
     for k in range(cfg.frames):
-        plans.append(FramePlan(len(plans), 'capture', t, subject_pose=sc.subject_pose(k, cfg.fps)))
+        plans.append(FramePlan(len(plans), CAPTURE, t, subject_pose=sc.subject_pose(k, cfg.fps)))
         t += period
     return plans
 
