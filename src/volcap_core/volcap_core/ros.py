@@ -10,10 +10,13 @@ import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from . import qos, topics, transport
 from .conversions import diagnostic_array, diagnostic_status
+
+RCLError = _rclpy.RCLError
 
 
 def run_node(factory: Callable[[], Node], args=None) -> int:
@@ -33,7 +36,10 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            rclpy.try_shutdown()
+        except RCLError:
+            pass   # the SIGINT/SIGTERM handler shut the context down between the check and ours
     return getattr(node, 'exit_code', 0)  # 0 too when interrupted while starting
 
 
