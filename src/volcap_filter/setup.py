@@ -23,7 +23,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            
+            'depth_filter = volcap_filter.depth_filter_node:main',
         ],
     },
 )

@@ -12,6 +12,7 @@ NODES = {
     ('volcap_driver', 'bag_player'): 'volcap_driver.bag_player_node',
     ('volcap_driver', 'synthetic_rig'): 'volcap_driver.synthetic_rig_node',
     ('volcap_driver', 'recorder'): 'volcap_driver.recorder_node',
+    ('volcap_filter', 'depth_filter'): 'volcap_filter.depth_filter_node',
 }
 
 
@@ -26,13 +27,15 @@ def ros_args(params: dict) -> list[str]:
 
 
 def start_node(package: str, executable: str, params: dict | None = None, env: dict | None = None,
-               **popen) -> subprocess.Popen:
-    """Run a node in its own process (``python -m`` its module, with this interpreter)."""
+               namespace: str = '', **popen) -> subprocess.Popen:
+    """Run a node in its own process (``python -m`` its module, with this interpreter),
+    optionally in a namespace (``-r __ns:=/cam0``, as a launch file does)."""
     module = NODES[(package, executable)]
     full_env = dict(os.environ)
     full_env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     full_env.update(env or {})
-    return subprocess.Popen([sys.executable, '-m', module, *ros_args(params or {})], env=full_env, **popen)
+    args = ros_args(params or {}) + (['-r', f'__ns:=/{namespace.strip("/")}'] if namespace else [])
+    return subprocess.Popen([sys.executable, '-m', module, *args], env=full_env, **popen)
 
 
 def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:

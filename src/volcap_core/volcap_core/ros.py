@@ -65,7 +65,8 @@ class Diagnostics:
     def __init__(self, node: Node, name: str, period: float = 1.0):
         self.node = node
         self.name = name
-        self.pub = node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, qos.EVENTS)
+        # Absolute: nodes run inside camera namespaces, diagnostics are rig level.
+        self.pub = node.create_publisher(DiagnosticArray, '/' + topics.DIAGNOSTICS, qos.EVENTS)
         self._last = None
         node.create_timer(period, self._republish)
 

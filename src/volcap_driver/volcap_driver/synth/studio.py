@@ -14,7 +14,7 @@ import numpy as np
 
 from volcap_calib.board import BoardConfig
 from volcap_core.camera import CameraModel
-from volcap_core.poses import invert, look_at, make_transform, perturb
+from volcap_core.poses import look_at, make_transform, perturb
 from volcap_core.rig import Rig, RigCamera, rig_camera_from_k4a
 from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, CLEAN_PLATE, camera_names
 
@@ -155,7 +155,7 @@ class StudioRenderer:
                  rng: np.random.Generator):
         self.cfg, self.rig, self.rng = cfg, rig, rng
         self.T_studio_color = T_studio_color
-        self.T_studio_depth = {c.name: T_studio_color[c.name] @ invert(c.T_color_depth) for c in rig.cameras}
+        self.T_studio_depth = {c.name: T_studio_color[c.name] @ c.T_color_depth for c in rig.cameras}
         self.responses = {c.name: ColorResponse.random(rng) for c in rig.cameras}
         # Poles stand 10 cm behind the cameras mounted on them.
         stand_xy = sorted({tuple(np.round(T[:2, 3] * (1 + 0.1 / np.linalg.norm(T[:2, 3])), 3))

@@ -1,0 +1,181 @@
+"""Flying-pixel filters on raw depth images (the sensor's own pixel grid).
+
+A time-of-flight pixel whose footprint straddles a depth step reports a mix of the surfaces it
+sees: a point floating between foreground and background. Two detectors:
+
+- ``paper_flying_pixels``: Eq. 5 of paper 000 as published, the baseline. Over a 3x3 window,
+  ``DepthError = p_i - 1/n sum_j (p_i - p_j)^2`` with depths in millimetres, and the centre is
+  removed when the mean squared difference exceeds its depth (``DepthError < 0``). Neighbours
+  are the two horizontal ones or all eight; invalid (zero) neighbours are left out of the mean,
+  since the paper does not say how it treats them and counting them as 0 mm would remove the
+  rim of every hole.
+- ``flying_pixels`` (ours): a pixel is real surface when it continues the surface of its
+  neighbours in at least three of the four axes (default): along a direction, the next pixel must be
+  within one surface step (what a surface at the largest measurable incidence angle produces,
+  plus noise) and the pixel must lie on the line through the next two (second difference
+  within the time-of-flight noise sigma(z) = base + quad z^2 and a curvature allowance). A
+  mixed pixel continues neither side of its step, and a row of them along a straight edge
+  continues only itself (one axis), so both fail; a true boundary pixel continues its own
+  surface along the edge and into its side (three axes) and is kept. Next to a depth step the test is one-sided and
+  strict, since mixing only ever pulls a pixel from its surface towards the other one. Then
+  connected components of kept pixels smaller than ``min_component_px`` (interference speckle,
+  stray clusters) are removed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+@numba.njit(cache=True)
+def _paper_eq5(depth_mm, horizontal, threshold):
+    h, w = depth_mm.shape
+    out = np.zeros((h, w), np.bool_)
+    for v in range(h):
+        for u in range(w):
+            p = depth_mm[v, u]
+            if not p > 0.0:
+                continue
+            acc, n = 0.0, 0
+            for dv in range(-1, 2):
+                if horizontal and dv != 0:
+                    continue
+                y = v + dv
+                if y < 0 or y >= h:
+                    continue
+                for du in range(-1, 2):
+                    x = u + du
+                    if (dv == 0 and du == 0) or x < 0 or x >= w:
+                        continue
+                    q = depth_mm[y, x]
+                    if q > 0.0:
+                        acc += (p - q) * (p - q)
+                        n += 1
+            if n > 0 and p - acc / n < threshold:
+                out[v, u] = True
+    return out
+
+
+def paper_flying_pixels(depth_m: np.ndarray, directions: str = 'all', threshold_mm: float = 0.0) -> np.ndarray:
+    """Paper 000 Eq. 5 on a depth image in metres: bool mask of the pixels it removes."""
+    if directions not in ('all', 'horizontal'):
+        raise ValueError(f"directions must be 'all' or 'horizontal', got {directions!r}")
+    depth_mm = np.ascontiguousarray(depth_m, np.float32) * np.float32(1000.0)
+    return _paper_eq5(depth_mm, directions == 'horizontal', float(threshold_mm))
+
+
+@dataclass
+class FlyingPixelConfig:
+    noise_base: float = 0.0008        # sigma(z) = base + quad z^2, metres (Azure Kinect class)
+    noise_quad: float = 0.0010
+    noise_sigmas: float = 3.0         # second-difference tolerance in sigmas
+    edge_sigmas: float = 1.0          # ... one-sided, for pixels at a depth step
+    curvature: float = 0.004          # extra second-difference allowance per metre of depth
+    max_incidence_deg: float = 75.0   # steeper surfaces than this count as steps
+    min_axes: int = 3                 # directions (of 4) in which the pixel must continue a surface
+    min_component_px: int = 30        # smaller depth-connected components are removed (0 = off)
+
+    def validate(self) -> None:
+        if not (self.noise_base >= 0 and self.noise_quad >= 0 and self.noise_sigmas > 0 and self.curvature >= 0):
+            raise ValueError('noise model and tolerances must be non-negative')
+        if not 0.0 < self.max_incidence_deg < 90.0:
+            raise ValueError(f'max_incidence_deg must be in (0, 90), got {self.max_incidence_deg}')
+        if not 1 <= self.min_axes <= 4:
+            raise ValueError(f'min_axes must be 1..4, got {self.min_axes}')
+        if self.min_component_px < 0:
+            raise ValueError('min_component_px must be >= 0')
+
+
+@numba.njit(cache=True, inline='always')
+def _continues(zp, y, x, dy, dx, p, limit, lo, hi):
+    """Whether the pixel continues the surface of its next two pixels on either side along
+    (dy, dx); branch-free so that the row loop stays fast on noisy depth."""
+    ok = False
+    for sgn in (1, -1):
+        z1, z2 = zp[y + sgn * dy, x + sgn * dx], zp[y + 2 * sgn * dy, x + 2 * sgn * dx]
+        e = p - 2.0 * z1 + z2
+        ok |= (z1 > 0.0) & (z2 > 0.0) & (abs(p - z1) <= limit) & (abs(z1 - z2) <= limit) & (e >= lo) & (e <= hi)
+    return np.int32(ok)
+
+
+@numba.njit(cache=True, fastmath=True)
+def _support(zp, slope, base, quad, k_sym, k_edge, curv, min_axes, keep, at_step):
+    """``zp`` is the depth padded by 2 zero pixels on every side; ``keep`` and ``at_step``
+    (pixel next to a depth step or hole) are unpadded outputs."""
+    h, w = keep.shape
+    for v in range(h):
+        y = v + 2
+        for u in range(w):
+            x = u + 2
+            p = zp[y, x]
+            if not p > 0.0:   # invalid areas are large and contiguous: a well-predicted branch
+                keep[v, u] = False
+                at_step[v, u] = False
+                continue
+            sigma = base + quad * p * p
+            step = slope * p + 4.3 * sigma
+            jump = 1.4142135 * step
+            # At a depth step a mixed pixel lies behind the near surface or in front of the far
+            # one, so there the test is one-sided and strict; a hole may hide either.
+            far_step, near_step = False, False
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    q = zp[y + dy, x + dx]
+                    far_step |= (q <= 0.0) | (q - p > jump)
+                    near_step |= (q > 0.0) & (p - q > jump)
+            at_step[v, u] = far_step | near_step
+            s = 2.4494897 * sigma + curv * p
+            lo = -(k_edge if near_step else k_sym) * s
+            hi = (k_edge if far_step else k_sym) * s
+            n = (_continues(zp, y, x, 0, 1, p, step, lo, hi) + _continues(zp, y, x, 1, 0, p, step, lo, hi)
+                 + _continues(zp, y, x, 1, 1, p, jump, lo, hi) + _continues(zp, y, x, 1, -1, p, jump, lo, hi))
+            keep[v, u] = n >= min_axes
+
+
+@numba.njit(cache=True)
+def _drop_small(labels, keep, at_step, z, slope, base, quad, min_px):
+    """Clear ``keep`` on pieces of surface smaller than ``min_px``. ``labels`` are components of
+    the kept pixels away from steps; a kept pixel at a step survives only beside a large
+    component at its own depth (so a speckle blob does not survive by touching the wall)."""
+    h, w = labels.shape
+    size = np.zeros(labels.max() + 1, np.int32)
+    for v in range(h):
+        for u in range(w):
+            size[labels[v, u]] += 1
+    size[0] = 0
+    for v in range(h):
+        for u in range(w):
+            if not keep[v, u]:
+                continue
+            if not at_step[v, u]:
+                keep[v, u] = size[labels[v, u]] >= min_px
+                continue
+            p = z[v, u]
+            jump = 1.4142135 * (slope * p + 4.3 * (base + quad * p * p))
+            ok = False
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    y, x = v + dy, u + dx
+                    if 0 <= y < h and 0 <= x < w and size[labels[y, x]] >= min_px and abs(z[y, x] - p) <= jump:
+                        ok = True
+            keep[v, u] = ok
+
+
+def flying_pixels(depth_m: np.ndarray, focal_px: float, cfg: FlyingPixelConfig | None = None) -> np.ndarray:
+    """Our flying-pixel and outlier detector: bool mask of valid pixels to remove."""
+    cfg = cfg or FlyingPixelConfig()
+    cfg.validate()
+    z = np.ascontiguousarray(depth_m, np.float32)
+    slope = float(np.tan(np.radians(cfg.max_incidence_deg)) / focal_px)
+    keep = np.empty(z.shape, np.bool_)
+    at_step = np.empty(z.shape, np.bool_)
+    _support(np.pad(z, 2), slope, cfg.noise_base, cfg.noise_quad, cfg.noise_sigmas, cfg.edge_sigmas, cfg.curvature,
+             cfg.min_axes, keep, at_step)
+    if cfg.min_component_px > 0:
+        # Pixels at steps are left out of the labelling, so surfaces at different depths stay
+        # apart and plain connectivity finds the stray islands (speckle, clusters of mixed pixels).
+        _, labels = cv2.connectedComponents((keep & ~at_step).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+        _drop_small(labels, keep, at_step, z, slope, cfg.noise_base, cfg.noise_quad, cfg.min_component_px)
+    return (z > 0) & ~keep

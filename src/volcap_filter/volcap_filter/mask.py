@@ -1,0 +1,191 @@
+"""Foreground masks from colour (paper 000's mask step), learnt from a clean plate or keyed.
+
+``BackgroundModel`` learns per-pixel colour statistics from background-only frames and the
+background depth (registered) where it was measured. A pixel is foreground when its colour
+leaves the background's colour cone (Horprasert et al.'s brightness / chromaticity distortion:
+shadows and exposure drift only scale brightness, so they stay background) or when depth puts a
+surface clearly in front of the background. The colour decision draws the boundary (it is
+sharper than depth); depth regions in front of the background are added where they touch the
+colour decision (a shirt the colour of the wall, a pedestal the grey of the floor). ``chroma_key_mask`` is the green-screen alternative.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+
+@dataclass
+class MaskConfig:
+    noise_floor: float = 3.0          # colour sigma floor (8-bit levels) with few clean-plate frames
+    chroma_sigmas: float = 6.0        # chromaticity distortion (in sigmas) beyond which it is foreground
+    min_difference: float = 12.0      # ... and at least this far in 8-bit levels
+    shadow_min: float = 0.55          # brightness ratio down to which a darker pixel may be shadow
+    highlight_max: float = 1.25       # brightness ratio above which a pixel is foreground
+    depth_margin: float = 0.05        # metres in front of the background depth that count as foreground
+    min_area_frac: float = 0.0005     # foreground blobs smaller than this fraction of the image go
+    min_range: float = 0.1            # range gate, metres (paper: 0.1-2.5 m)
+    max_range: float = 2.5
+
+    def validate(self) -> None:
+        if not 0.0 <= self.min_range < self.max_range:
+            raise ValueError(f'range gate needs 0 <= min_range < max_range, got {self.min_range}, {self.max_range}')
+        if not 0.0 < self.shadow_min <= 1.0 <= self.highlight_max:
+            raise ValueError('need 0 < shadow_min <= 1 <= highlight_max')
+        if self.noise_floor <= 0 or self.chroma_sigmas <= 0 or self.min_difference < 0 or self.depth_margin < 0:
+            raise ValueError('mask thresholds must be positive')
+
+
+@numba.njit(cache=True)
+def _colour_foreground(img, mean, inv_sigma, chroma_k, min_diff, shadow_min, highlight_max, out):
+    h, w, _ = img.shape
+    for v in range(h):
+        for u in range(w):
+            num, den, diff2 = 0.0, 0.0, 0.0
+            for c in range(3):
+                e = mean[v, u, c] * inv_sigma[v, u, c]
+                x = img[v, u, c] * inv_sigma[v, u, c]
+                num += x * e
+                den += e * e
+                d = float(img[v, u, c]) - mean[v, u, c]
+                diff2 += d * d
+            alpha = num / den if den > 1e-9 else 1.0
+            cd2 = 0.0
+            for c in range(3):
+                r = (img[v, u, c] - alpha * mean[v, u, c]) * inv_sigma[v, u, c]
+                cd2 += r * r
+            fg = False
+            if diff2 > min_diff * min_diff:
+                fg = cd2 > chroma_k * chroma_k or alpha < shadow_min or alpha > highlight_max
+            out[v, u] = fg
+
+
+class BackgroundModel:
+    """Clean-plate statistics of one camera: colour mean and spread, and background depth."""
+
+    def __init__(self):
+        self._n = 0
+        self._sum = self._sum2 = None
+        self._depth_far = None
+
+    @property
+    def frames(self) -> int:
+        return self._n
+
+    def add(self, rgb: np.ndarray, depth_m: np.ndarray | None = None) -> None:
+        """Add one background-only frame (colour at mask resolution, registered depth at any)."""
+        x = rgb.astype(np.float64)
+        if self._sum is not None and x.shape != self._sum.shape:
+            raise ValueError(f'clean-plate frame is {x.shape[1]}x{x.shape[0]}, earlier ones were '
+                             f'{self._sum.shape[1]}x{self._sum.shape[0]}')
+        self._sum = x if self._sum is None else self._sum + x
+        self._sum2 = x * x if self._sum2 is None else self._sum2 + x * x
+        if depth_m is not None:
+            d = np.where(np.isfinite(depth_m), depth_m, 0).astype(np.float32)
+            # The farthest return seen: a transient object in one frame must not become background.
+            self._depth_far = d if self._depth_far is None else np.maximum(self._depth_far, d)
+        self._n += 1
+
+    def statistics(self, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
+        if self._n == 0:
+            raise ValueError('no clean-plate frames learnt yet')
+        mean = self._sum / self._n
+        var = np.maximum(self._sum2 / self._n - mean ** 2, 0.0) * (self._n / max(self._n - 1, 1))
+        sigma = np.sqrt(np.maximum(var, noise_floor ** 2))
+        return mean.astype(np.float32), (1.0 / sigma).astype(np.float32)
+
+    @property
+    def depth(self) -> np.ndarray | None:
+        return self._depth_far
+
+    def save(self, path: str) -> None:
+        from pathlib import Path
+        import os
+        import tempfile
+        if self._n == 0:
+            raise ValueError('no clean-plate frames to save')
+        target = Path(path)
+        fd, tmp = tempfile.mkstemp(dir=target.parent, suffix='.npz.tmp')
+        with os.fdopen(fd, 'wb') as f:
+            np.savez_compressed(f, n=self._n, sum=self._sum, sum2=self._sum2,
+                                depth=self._depth_far if self._depth_far is not None else np.zeros(0, np.float32))
+        os.replace(tmp, target)
+
+    @classmethod
+    def load(cls, path: str) -> 'BackgroundModel':
+        model = cls()
+        with np.load(path) as npz:
+            model._n, model._sum, model._sum2 = int(npz['n']), npz['sum'], npz['sum2']
+            model._depth_far = npz['depth'] if npz['depth'].size else None
+        return model
+
+
+def colour_foreground(rgb: np.ndarray, model: BackgroundModel, cfg: MaskConfig) -> np.ndarray:
+    """Pixels whose colour cannot be the learnt background (before clean-up)."""
+    mean, inv_sigma = model.statistics(cfg.noise_floor)
+    if rgb.shape != mean.shape:
+        raise ValueError(f'colour image is {rgb.shape[1]}x{rgb.shape[0]}, the clean plate is '
+                         f'{mean.shape[1]}x{mean.shape[0]}')
+    out = np.empty(rgb.shape[:2], np.bool_)
+    _colour_foreground(np.ascontiguousarray(rgb), mean, inv_sigma, cfg.chroma_sigmas, cfg.min_difference,
+                       cfg.shadow_min, cfg.highlight_max, out)
+    return out
+
+
+def depth_foreground(depth_m: np.ndarray, background_m: np.ndarray | None, cfg: MaskConfig) -> np.ndarray:
+    """Surfaces inside the range gate and clearly in front of the learnt background depth."""
+    in_gate = (depth_m > cfg.min_range) & (depth_m < cfg.max_range)
+    if background_m is None:
+        return in_gate
+    if background_m.shape != depth_m.shape:
+        raise ValueError('background depth and depth differ in size')
+    return in_gate & ((background_m <= 0) | (depth_m < background_m - cfg.depth_margin))
+
+
+def foreground_mask(rgb: np.ndarray, depth_m: np.ndarray, model: BackgroundModel, cfg: MaskConfig) -> np.ndarray:
+    """Clean-plate foreground at the colour image's resolution; ``depth_m`` is the registered
+    depth at any resolution of the same camera (resized here), flying pixels already removed."""
+    h, w = rgb.shape[:2]
+    fg = colour_foreground(rgb, model, cfg)
+    if depth_m is not None:
+        bg = model.depth if model.depth is not None and model.depth.shape == depth_m.shape else None
+        by_depth = depth_foreground(depth_m, bg, cfg).view(np.uint8)
+        by_depth = cv2.resize(by_depth, (w, h), interpolation=cv2.INTER_NEAREST) > 0
+        # Depth regions join the mask where they touch colour foreground (a pedestal the grey of
+        # the floor below a coloured subject), never on their own (no colour change, no subject).
+        joined = (fg | by_depth).view(np.uint8)
+        n, labels = cv2.connectedComponents(joined, connectivity=8)
+        touched = np.zeros(n, bool)
+        touched[np.unique(labels[fg])] = True
+        touched[0] = False
+        fg = touched[labels]
+    return clean_mask(fg, cfg.min_area_frac)
+
+
+def clean_mask(fg: np.ndarray, min_area_frac: float) -> np.ndarray:
+    """Despeckle a raw foreground decision: open, drop small blobs, fill enclosed holes."""
+    m = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    min_area = min_area_frac * fg.size
+    keep = np.zeros(n, bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_area
+    m = keep[labels]
+    # Holes are background regions that do not reach the image border.
+    inv = (~m).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(inv, connectivity=4)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    hole = np.ones(n, bool)
+    hole[border] = False
+    hole[0] = False
+    return m | hole[labels]
+
+
+def chroma_key_mask(rgb: np.ndarray, key_rgb: tuple[int, int, int] = (0, 177, 64), threshold: float = 40.0,
+                    min_area_frac: float = 0.0005) -> np.ndarray:
+    """Foreground = pixels whose chroma (Cr, Cb) is farther than ``threshold`` from the key's."""
+    ycrcb = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2YCrCb).astype(np.float32)
+    key = cv2.cvtColor(np.uint8([[key_rgb]]), cv2.COLOR_RGB2YCrCb).astype(np.float32)[0, 0]
+    dist = np.hypot(ycrcb[:, :, 1] - key[1], ycrcb[:, :, 2] - key[2])
+    return clean_mask(dist > threshold, min_area_frac)

@@ -1,0 +1,211 @@
+"""One camera's depth cleaning, stage by stage: flying pixels and range gate on the raw grid,
+registration into the colour camera, foreground mask with a depth-aware boundary band,
+optional temporal smoothing, and the coloured point cloud (optionally outlier-filtered)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .flying import FlyingPixelConfig, flying_pixels, paper_flying_pixels
+from .mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
+from .registration import DepthRegistration
+
+FLYING_METHODS = ('volcap', 'paper_all', 'paper_horizontal', 'none')
+MASK_MODES = ('clean_plate', 'chroma', 'none')
+
+
+@dataclass
+class DepthFilterConfig:
+    flying_method: str = 'volcap'
+    flying: FlyingPixelConfig = field(default_factory=FlyingPixelConfig)
+    mask_mode: str = 'clean_plate'
+    mask: MaskConfig = field(default_factory=MaskConfig)
+    range_gate: bool = True
+    chroma_key: tuple[int, int, int] = (0, 177, 64)
+    chroma_threshold: float = 40.0
+    boundary_px: int = 2              # width of the mask's boundary band (output pixels)
+    boundary_tolerance: float = 0.03  # band depth may lie this far behind the nearby inside, metres
+    temporal_alpha: float = 0.0       # 0 = off; else EMA weight of the new frame on stable pixels
+    sor_neighbors: int = 0            # 0 = off; Open3D statistical outlier removal on the cloud
+    sor_std_ratio: float = 2.5
+
+    def validate(self) -> None:
+        if self.flying_method not in FLYING_METHODS:
+            raise ValueError(f'flying_method must be one of {FLYING_METHODS}, got {self.flying_method!r}')
+        if self.mask_mode not in MASK_MODES:
+            raise ValueError(f'mask_mode must be one of {MASK_MODES}, got {self.mask_mode!r}')
+        if self.boundary_px < 0 or self.boundary_tolerance < 0 or self.sor_neighbors < 0:
+            raise ValueError('boundary_px, boundary_tolerance and sor_neighbors must be >= 0')
+        if not 0.0 <= self.temporal_alpha <= 1.0:
+            raise ValueError(f'temporal_alpha must be in [0, 1], got {self.temporal_alpha}')
+        self.flying.validate()
+        self.mask.validate()
+
+
+@dataclass
+class CleanResult:
+    depth: np.ndarray            # (h, w) float32 metres, colour geometry at output size, 0 = none
+    mask: np.ndarray | None      # (H, W) bool foreground at colour resolution (None: no mask)
+    flying: np.ndarray           # (Hd, Wd) bool raw pixels the flying-pixel filter removed
+    keep_raw: np.ndarray         # (Hd, Wd) bool raw pixels that reached the output
+    color: np.ndarray            # (h, w, 3) uint8 colour at output size
+    timings_ms: dict[str, float]
+
+
+class DepthCleaner:
+    """Cleans one camera's frames; holds its registration, clean plate and temporal state."""
+
+    def __init__(self, registration: DepthRegistration, cfg: DepthFilterConfig | None = None):
+        self.registration = registration
+        self.cfg = cfg or DepthFilterConfig()
+        self.cfg.validate()
+        self.background = BackgroundModel()
+        self._temporal = None
+        self._out_rays = registration.output.pixel_rays().astype(np.float32)
+
+    @property
+    def output_model(self):
+        return self.registration.output
+
+    def learn_background(self, color: np.ndarray, depth_m: np.ndarray) -> None:
+        """Add one subject-free frame to the clean plate."""
+        self._check(color, depth_m)
+        registered = self.registration.register(self._gate(sanitise_depth(depth_m))).depth
+        self.background.add(color, registered)
+
+    def process(self, color: np.ndarray, depth_m: np.ndarray) -> CleanResult:
+        cfg = self.cfg
+        self._check(color, depth_m)
+        t = {}
+        t0 = time.perf_counter()
+        depth = sanitise_depth(depth_m)
+        flying = self._flying(depth)
+        gated = self._gate(np.where(flying, 0.0, depth).astype(np.float32))
+        t['flying'] = _ms(t0)
+        t0 = time.perf_counter()
+        reg = self.registration.register(gated)
+        t['register'] = _ms(t0)
+        t0 = time.perf_counter()
+        out = self.output_model
+        color_out = cv2.resize(color, (out.width, out.height), interpolation=cv2.INTER_AREA)
+        mask = self._mask(color, reg.depth)
+        keep = reg.depth > 0
+        if mask is not None:
+            fg = cv2.resize(mask.view(np.uint8) * np.uint8(255), (out.width, out.height),
+                            interpolation=cv2.INTER_AREA) > 127
+            keep &= self._boundary_keep(fg, reg.depth)
+        clean = np.where(keep, reg.depth, np.float32(0.0))
+        t['mask'] = _ms(t0)
+        if cfg.temporal_alpha > 0:
+            clean = self._smooth(clean)
+        t0 = time.perf_counter()
+        keep_raw = _reached_output(reg.uv, reg.z, clean)
+        t['bookkeeping'] = _ms(t0)
+        return CleanResult(clean, mask, flying, keep_raw, color_out, t)
+
+    def points(self, result: CleanResult) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) float32 points in the colour optical frame and their (N, 3) uint8 colours."""
+        valid = result.depth > 0
+        xyz = self._out_rays[valid] * result.depth[valid][:, None]
+        rgb = result.color[valid]
+        if self.cfg.sor_neighbors > 0 and len(xyz) > self.cfg.sor_neighbors:
+            xyz, rgb = statistical_outlier_removal(xyz, rgb, self.cfg.sor_neighbors, self.cfg.sor_std_ratio)
+        return xyz, rgb
+
+    def _check(self, color: np.ndarray, depth_m: np.ndarray) -> None:
+        c = self.registration.color_model
+        if color.shape[:2] != (c.height, c.width):
+            raise ValueError(f'colour image is {color.shape[1]}x{color.shape[0]}, its camera_info says '
+                             f'{c.width}x{c.height}')
+        if not np.any(depth_m > 0):
+            raise ValueError('depth image has no valid pixel (all zero or NaN)')
+
+    def _flying(self, depth: np.ndarray) -> np.ndarray:
+        method = self.cfg.flying_method
+        if method == 'volcap':
+            return flying_pixels(depth, self.registration.depth_model.fx, self.cfg.flying)
+        if method.startswith('paper_'):
+            return paper_flying_pixels(depth, method.removeprefix('paper_'))
+        return np.zeros(depth.shape, bool)
+
+    def _gate(self, depth: np.ndarray) -> np.ndarray:
+        if not self.cfg.range_gate:
+            return depth
+        m = self.cfg.mask
+        return np.where((depth >= m.min_range) & (depth <= m.max_range), depth, np.float32(0.0))
+
+    def _mask(self, color: np.ndarray, registered: np.ndarray) -> np.ndarray | None:
+        mode = self.cfg.mask_mode
+        if mode == 'chroma':
+            return chroma_key_mask(color, self.cfg.chroma_key, self.cfg.chroma_threshold, self.cfg.mask.min_area_frac)
+        if mode == 'clean_plate' and self.background.frames:
+            return foreground_mask(color, registered, self.background, self.cfg.mask)
+        return None
+
+    def _boundary_keep(self, fg: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Depth allowed through the mask. In a band from ``boundary_px`` inside the mask's edge
+        to one pixel outside it, depth is kept only where it is not behind the nearby inside of
+        the mask: background leaking through colour/depth misalignment is dropped, the subject's
+        own rim is kept (a plain erosion would cut both)."""
+        r = self.cfg.boundary_px
+        if r == 0:
+            return fg
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        inside = cv2.erode(fg.view(np.uint8), kernel).astype(bool)
+        band = cv2.dilate(fg.view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~inside
+        inside_depth = np.where(inside & (depth > 0), depth, np.float32(0.0))
+        wide = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * r + 3, 4 * r + 3))
+        reference = cv2.dilate(inside_depth, wide)   # farthest inside surface nearby
+        return inside | (band & (depth <= reference + self.cfg.boundary_tolerance) & (reference > 0))
+
+    def _smooth(self, depth: np.ndarray) -> np.ndarray:
+        """Exponential average of pixels whose depth stays within the noise of the average
+        (static background); anything that moves restarts at the new value."""
+        if self._temporal is None or self._temporal.shape != depth.shape:
+            self._temporal = depth.copy()
+            return depth
+        prev = self._temporal
+        f = self.cfg.flying
+        tol = 3.0 * (f.noise_base + f.noise_quad * depth ** 2)
+        stable = (depth > 0) & (prev > 0) & (np.abs(depth - prev) <= tol)
+        a = np.float32(self.cfg.temporal_alpha)
+        self._temporal = np.where(stable, prev + a * (depth - prev), depth).astype(np.float32)
+        return self._temporal
+
+
+def sanitise_depth(depth_m: np.ndarray) -> np.ndarray:
+    """float32 metres with NaN, inf and negative values as 0 (invalid)."""
+    d = np.asarray(depth_m, np.float32)
+    return np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0))
+
+
+def _reached_output(uv: np.ndarray, z: np.ndarray, clean: np.ndarray, tolerance: float = 0.02) -> np.ndarray:
+    """Raw pixels whose projection lands on a kept output pixel at their own depth (not hidden)."""
+    keep = np.zeros(z.shape, bool)
+    v, u = np.nonzero(z > 0)
+    if v.size == 0:
+        return keep
+    x = np.floor(uv[v, u, 0] + 0.5).astype(np.int64)
+    y = np.floor(uv[v, u, 1] + 0.5).astype(np.int64)
+    h, w = clean.shape
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    v, u, x, y = v[inside], u[inside], x[inside], y[inside]
+    out = clean[y, x]
+    zr = z[v, u]
+    keep[v, u] = (out > 0) & (np.abs(out - zr) <= tolerance + 0.01 * zr)
+    return keep
+
+
+def statistical_outlier_removal(xyz: np.ndarray, rgb: np.ndarray, neighbors: int, std_ratio: float):
+    import open3d as o3d
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz.astype(np.float64)))
+    _, idx = pcd.remove_statistical_outlier(nb_neighbors=neighbors, std_ratio=std_ratio)
+    idx = np.asarray(idx, np.int64)
+    return xyz[idx], rgb[idx]
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
