@@ -37,6 +37,7 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/transport.py
+	$(PY) bench/filter.py
 
 colcon: $(STAMP)
 	$(VENV)/bin/colcon build --base-paths src --build-base build --install-base install
