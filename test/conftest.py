@@ -40,3 +40,13 @@ def ros_context():
     rclpy.init(context=context)
     yield context
     context.try_shutdown()
+
+
+@pytest.fixture
+def procs():
+    """Node processes a test starts; each is stopped (SIGINT, then SIGKILL) afterwards."""
+    from volcap_bringup.processes import stop
+    started = []
+    yield started
+    for p in started:
+        stop(p)

@@ -8,7 +8,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 
-from volcap_bringup.processes import start_node, stop
+from volcap_bringup.processes import start_node
 from volcap_core import qos, topics
 from volcap_core.conversions import (camera_model_to_info, image_to_numpy, numpy_to_image,
                                      pointcloud2_to_points)
@@ -18,14 +18,6 @@ from volcap_driver.synth.session import GroundTruth
 from test_nodes import Probe
 
 pytestmark = pytest.mark.ros
-
-
-@pytest.fixture
-def procs():
-    started = []
-    yield started
-    for p in started:
-        stop(p)
 
 
 def test_filter_nodes_clean_a_replayed_bag_on_every_camera(studio_bag, ros_context, procs):

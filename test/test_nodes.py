@@ -62,14 +62,6 @@ def probe_factory(ros_context):
         p.close()
 
 
-@pytest.fixture
-def procs():
-    started = []
-    yield started
-    for p in started:
-        stop(p)
-
-
 def play(procs, bag, **params):
     procs.append(start_node('volcap_driver', 'bag_player', {'bag': str(bag), 'wait_for_subscribers': 20.0,
                                                             **params}))
