@@ -75,7 +75,8 @@ def test_executables_start_from_the_install_space(install, pkg, exe, studio_bag,
     assert path.exists() and os.access(path, os.X_OK)
     params = {'bag_player': {'bag': str(studio_bag), 'as_fast_as_possible': 'true', 'topics': "['volcap/rig']"},
               'recorder': {'out': str(tmp_path / 'rec')},
-              'synthetic_rig': {'cameras': 1, 'frames': 1, 'fps': 5.0}}[exe]
+              'synthetic_rig': {'cameras': 1, 'frames': 1, 'fps': 5.0},
+              'depth_filter': {'camera': 'cam0'}}[exe]
     proc = run_installed(install, pkg, exe, params, shared_data)
     try:
         lines = []

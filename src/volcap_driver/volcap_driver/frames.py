@@ -58,8 +58,7 @@ def frame_sets(path: str | Path, phases: tuple[str, ...] | None = None, toleranc
         wanted = [topics.PHASE] + [topics.camera_topic(c, t) for c in names for t in STREAMS]
         sync = FrameSetSynchronizer(names, tuple(STREAMS.values()), tolerance_ns=tolerance_ns,
                                     timeout_ns=10**18, max_pending=8)
-        phase = None
-        pending_phase = {}
+        phase_changes: dict[int, str] = {}   # stamp -> phase announced there
         index = 0
 
         def emit(sets):
@@ -75,15 +74,14 @@ def frame_sets(path: str | Path, phases: tuple[str, ...] | None = None, toleranc
                                              camera_info_to_model(parts['color_info']),
                                              camera_info_to_model(parts['depth_info']),
                                              parts['depth'].header.frame_id, parts['color'].header.frame_id)
-                set_phase = _phase_at(pending_phase, fs.stamp_ns)
+                set_phase = _phase_at(phase_changes, fs.stamp_ns)
                 if phases is None or set_phase in phases:
                     yield BagFrameSet(index, set_phase, fs.stamp_ns, cams, missing)
                 index += 1
 
         for m in reader.messages(wanted):
             if m.topic == topics.PHASE:
-                phase = (yaml.safe_load(m.decode().data) or {}).get('phase')
-                pending_phase[m.stamp_ns] = phase
+                phase_changes[m.stamp_ns] = (yaml.safe_load(m.decode().data) or {}).get('phase')
                 continue
             camera, _, rel = m.topic.partition('/')
             msg = m.decode()

@@ -128,7 +128,7 @@ class DepthFilter(Node):
         self.create_service(Trigger, '~/capture_clean_plate', self._on_capture_clean_plate)
         self.create_service(Trigger, '~/save_figures', self._on_save_figures)
         self.create_timer(1.0, self._report)
-        self.get_logger().info(f'depth_filter for {self.camera} started')
+        self.get_logger().info(f'depth_filter started for {self.camera}')
 
     # parameters ---------------------------------------------------------------------------
     def _parameter_values(self) -> dict:

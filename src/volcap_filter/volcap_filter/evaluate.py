@@ -26,11 +26,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from volcap_core.files import atomic_write
 from volcap_core.topics import CAPTURE, CLEAN_PLATE
 from volcap_driver.frames import frame_sets
 from volcap_driver.synth.session import GroundTruth
 
-from .flying import FlyingPixelConfig
 from .pipeline import DepthCleaner, DepthFilterConfig
 from .registration import DepthRegistration
 
@@ -38,13 +38,13 @@ METHODS = ('raw', 'paper_horizontal', 'paper_all', 'volcap')
 NEAR_SUBJECT_PX = 3
 
 
-def method_config(method: str, flying: FlyingPixelConfig | None = None) -> DepthFilterConfig:
+def method_config(method: str) -> DepthFilterConfig:
     if method == 'raw':
         return DepthFilterConfig(flying_method='none', mask_mode='none', range_gate=False, boundary_px=0)
     if method in ('paper_horizontal', 'paper_all'):
         return DepthFilterConfig(flying_method=method, boundary_px=0)
     if method == 'volcap':
-        return DepthFilterConfig(flying=flying or FlyingPixelConfig())
+        return DepthFilterConfig()
     raise ValueError(f'unknown method {method!r}; choose from {METHODS}')
 
 
@@ -144,7 +144,7 @@ def _truth(arrays: dict, name: str, raw: np.ndarray) -> dict:
 
 def _score(tally: _Tally, res, truth: dict, frame, cleaner: DepthCleaner) -> None:
     near, fly, good = truth['near'], truth['flying'], truth['good']
-    kept = res.keep_raw
+    kept = res.reached_output()
     flagged = res.flying & near
     clean = truth['clean']
     err_px = kept & near & (clean > 0)
@@ -179,10 +179,4 @@ def format_report(report: dict) -> str:
 
 
 def write_report(report: dict, path: Path) -> None:
-    import os
-    import tempfile
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix='.json.tmp')
-    with os.fdopen(fd, 'w') as f:
-        json.dump(report, f, indent=2)
-    os.replace(tmp, path)
+    atomic_write(path, lambda f: json.dump(report, f, indent=2), binary=False)

@@ -7,6 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from volcap_core.files import atomic_write
+
 from .pipeline import CleanResult
 
 
@@ -35,12 +37,10 @@ def depth_panels(raw_m: np.ndarray, result: CleanResult) -> np.ndarray:
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:
-    """Atomic PNG write (to a temporary name, then renamed)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix('.tmp.png')
-    if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[:, :, ::-1])):
-        raise OSError(f'could not write {path}')
-    tmp.replace(path)
+    ok, png = cv2.imencode('.png', np.ascontiguousarray(rgb[:, :, ::-1]))
+    if not ok:
+        raise OSError(f'could not encode {path}')
+    atomic_write(path, lambda f: f.write(png.tobytes()))
 
 
 def write_depth_figures(out_dir: Path, frames: dict) -> list[Path]:

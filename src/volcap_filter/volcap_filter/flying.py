@@ -93,10 +93,11 @@ def _continues(zp, y, x, dy, dx, p, limit, lo, hi):
     """Whether the pixel continues the surface of its next two pixels on either side along
     (dy, dx); branch-free so that the row loop stays fast on noisy depth."""
     ok = False
+    zero = np.float32(0.0)
     for sgn in (1, -1):
         z1, z2 = zp[y + sgn * dy, x + sgn * dx], zp[y + 2 * sgn * dy, x + 2 * sgn * dx]
-        e = p - 2.0 * z1 + z2
-        ok |= (z1 > 0.0) & (z2 > 0.0) & (abs(p - z1) <= limit) & (abs(z1 - z2) <= limit) & (e >= lo) & (e <= hi)
+        e = p - (z1 + z1) + z2
+        ok |= (z1 > zero) & (z2 > zero) & (abs(p - z1) <= limit) & (abs(z1 - z2) <= limit) & (e >= lo) & (e <= hi)
     return np.int32(ok)
 
 
@@ -105,28 +106,32 @@ def _support(zp, slope, base, quad, k_sym, k_edge, curv, min_axes, keep, at_step
     """``zp`` is the depth padded by 2 zero pixels on every side; ``keep`` and ``at_step``
     (pixel next to a depth step or hole) are unpadded outputs."""
     h, w = keep.shape
+    # float32 throughout: the depth is float32 and mixed precision costs vector width.
+    zero, root2, step_sigmas, root6 = np.float32(0.0), np.float32(1.4142135), np.float32(4.3), np.float32(2.4494897)
+    slope, base, quad = np.float32(slope), np.float32(base), np.float32(quad)
+    k_sym, k_edge, curv = np.float32(k_sym), np.float32(k_edge), np.float32(curv)
     for v in range(h):
         y = v + 2
         for u in range(w):
             x = u + 2
             p = zp[y, x]
-            if not p > 0.0:   # invalid areas are large and contiguous: a well-predicted branch
+            if not p > zero:   # invalid areas are large and contiguous: a well-predicted branch
                 keep[v, u] = False
                 at_step[v, u] = False
                 continue
             sigma = base + quad * p * p
-            step = slope * p + 4.3 * sigma
-            jump = 1.4142135 * step
+            step = slope * p + step_sigmas * sigma
+            jump = root2 * step
             # At a depth step a mixed pixel lies behind the near surface or in front of the far
             # one, so there the test is one-sided and strict; a hole may hide either.
             far_step, near_step = False, False
             for dy in (-1, 0, 1):
                 for dx in (-1, 0, 1):
                     q = zp[y + dy, x + dx]
-                    far_step |= (q <= 0.0) | (q - p > jump)
-                    near_step |= (q > 0.0) & (p - q > jump)
+                    far_step |= (q <= zero) | (q - p > jump)
+                    near_step |= (q > zero) & (p - q > jump)
             at_step[v, u] = far_step | near_step
-            s = 2.4494897 * sigma + curv * p
+            s = root6 * sigma + curv * p
             lo = -(k_edge if near_step else k_sym) * s
             hi = (k_edge if far_step else k_sym) * s
             n = (_continues(zp, y, x, 0, 1, p, step, lo, hi) + _continues(zp, y, x, 1, 0, p, step, lo, hi)
@@ -135,12 +140,12 @@ def _support(zp, slope, base, quad, k_sym, k_edge, curv, min_axes, keep, at_step
 
 
 @numba.njit(cache=True)
-def _drop_small(labels, keep, at_step, z, slope, base, quad, min_px):
+def _drop_small(labels, n_labels, keep, at_step, z, slope, base, quad, min_px):
     """Clear ``keep`` on pieces of surface smaller than ``min_px``. ``labels`` are components of
     the kept pixels away from steps; a kept pixel at a step survives only beside a large
     component at its own depth (so a speckle blob does not survive by touching the wall)."""
     h, w = labels.shape
-    size = np.zeros(labels.max() + 1, np.int32)
+    size = np.zeros(n_labels, np.int32)
     for v in range(h):
         for u in range(w):
             size[labels[v, u]] += 1
@@ -176,6 +181,6 @@ def flying_pixels(depth_m: np.ndarray, focal_px: float, cfg: FlyingPixelConfig |
     if cfg.min_component_px > 0:
         # Pixels at steps are left out of the labelling, so surfaces at different depths stay
         # apart and plain connectivity finds the stray islands (speckle, clusters of mixed pixels).
-        _, labels = cv2.connectedComponents((keep & ~at_step).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
-        _drop_small(labels, keep, at_step, z, slope, cfg.noise_base, cfg.noise_quad, cfg.min_component_px)
+        n, labels = cv2.connectedComponents((keep & ~at_step).view(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+        _drop_small(labels, n, keep, at_step, z, slope, cfg.noise_base, cfg.noise_quad, cfg.min_component_px)
     return (z > 0) & ~keep

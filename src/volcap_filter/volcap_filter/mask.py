@@ -16,6 +16,8 @@ import cv2
 import numba
 import numpy as np
 
+from volcap_core.files import atomic_write
+
 
 @dataclass
 class MaskConfig:
@@ -69,6 +71,7 @@ class BackgroundModel:
         self._n = 0
         self._sum = self._sum2 = None
         self._depth_far = None
+        self._stats = None   # (noise_floor, mean, 1 / sigma), made once per clean plate
 
     @property
     def frames(self) -> int:
@@ -87,31 +90,28 @@ class BackgroundModel:
             # The farthest return seen: a transient object in one frame must not become background.
             self._depth_far = d if self._depth_far is None else np.maximum(self._depth_far, d)
         self._n += 1
+        self._stats = None
 
     def statistics(self, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel colour mean and 1 / sigma (float32), cached until a frame is added."""
         if self._n == 0:
             raise ValueError('no clean-plate frames learnt yet')
-        mean = self._sum / self._n
-        var = np.maximum(self._sum2 / self._n - mean ** 2, 0.0) * (self._n / max(self._n - 1, 1))
-        sigma = np.sqrt(np.maximum(var, noise_floor ** 2))
-        return mean.astype(np.float32), (1.0 / sigma).astype(np.float32)
+        if self._stats is None or self._stats[0] != noise_floor:
+            mean = self._sum / self._n
+            var = np.maximum(self._sum2 / self._n - mean ** 2, 0.0) * (self._n / max(self._n - 1, 1))
+            sigma = np.sqrt(np.maximum(var, noise_floor ** 2))
+            self._stats = (noise_floor, mean.astype(np.float32), (1.0 / sigma).astype(np.float32))
+        return self._stats[1], self._stats[2]
 
     @property
     def depth(self) -> np.ndarray | None:
         return self._depth_far
 
     def save(self, path: str) -> None:
-        from pathlib import Path
-        import os
-        import tempfile
         if self._n == 0:
             raise ValueError('no clean-plate frames to save')
-        target = Path(path)
-        fd, tmp = tempfile.mkstemp(dir=target.parent, suffix='.npz.tmp')
-        with os.fdopen(fd, 'wb') as f:
-            np.savez_compressed(f, n=self._n, sum=self._sum, sum2=self._sum2,
-                                depth=self._depth_far if self._depth_far is not None else np.zeros(0, np.float32))
-        os.replace(tmp, target)
+        depth = self._depth_far if self._depth_far is not None else np.zeros(0, np.float32)
+        atomic_write(path, lambda f: np.savez_compressed(f, n=self._n, sum=self._sum, sum2=self._sum2, depth=depth))
 
     @classmethod
     def load(cls, path: str) -> 'BackgroundModel':
@@ -155,31 +155,25 @@ def foreground_mask(rgb: np.ndarray, depth_m: np.ndarray, model: BackgroundModel
         by_depth = cv2.resize(by_depth, (w, h), interpolation=cv2.INTER_NEAREST) > 0
         # Depth regions join the mask where they touch colour foreground (a pedestal the grey of
         # the floor below a coloured subject), never on their own (no colour change, no subject).
-        joined = (fg | by_depth).view(np.uint8)
-        n, labels = cv2.connectedComponents(joined, connectivity=8)
-        touched = np.zeros(n, bool)
-        touched[np.unique(labels[fg])] = True
-        touched[0] = False
-        fg = touched[labels]
+        return clean_mask(fg | by_depth, cfg.min_area_frac, seeds=fg)
     return clean_mask(fg, cfg.min_area_frac)
 
 
-def clean_mask(fg: np.ndarray, min_area_frac: float) -> np.ndarray:
-    """Despeckle a raw foreground decision: open, drop small blobs, fill enclosed holes."""
-    m = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+def clean_mask(fg: np.ndarray, min_area_frac: float, seeds: np.ndarray | None = None) -> np.ndarray:
+    """Despeckle a raw foreground decision: open, drop blobs smaller than ``min_area_frac`` of the
+    image (and, given ``seeds``, blobs containing no seed pixel), fill enclosed holes."""
+    m = cv2.morphologyEx(fg.view(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
-    min_area = min_area_frac * fg.size
-    keep = np.zeros(n, bool)
-    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_area
-    m = keep[labels]
-    # Holes are background regions that do not reach the image border.
-    inv = (~m).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(inv, connectivity=4)
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    hole = np.ones(n, bool)
-    hole[border] = False
-    hole[0] = False
-    return m | hole[labels]
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_area_frac * fg.size
+    keep[0] = False
+    if seeds is not None:
+        touched = np.zeros(n, bool)
+        touched[labels[seeds]] = True
+        keep &= touched
+    # Holes are the background that a flood from the image border does not reach.
+    padded = cv2.copyMakeBorder(keep[labels].view(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    cv2.floodFill(padded, None, (0, 0), 2)
+    return padded[1:-1, 1:-1] != 2
 
 
 def chroma_key_mask(rgb: np.ndarray, key_rgb: tuple[int, int, int] = (0, 177, 64), threshold: float = 40.0,

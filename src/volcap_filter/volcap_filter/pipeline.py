@@ -11,7 +11,7 @@ import numpy as np
 
 from .flying import FlyingPixelConfig, flying_pixels, paper_flying_pixels
 from .mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
-from .registration import DepthRegistration
+from .registration import DepthRegistration, Registered
 
 FLYING_METHODS = ('volcap', 'paper_all', 'paper_horizontal', 'none')
 MASK_MODES = ('clean_plate', 'chroma', 'none')
@@ -50,9 +50,24 @@ class CleanResult:
     depth: np.ndarray            # (h, w) float32 metres, colour geometry at output size, 0 = none
     mask: np.ndarray | None      # (H, W) bool foreground at colour resolution (None: no mask)
     flying: np.ndarray           # (Hd, Wd) bool raw pixels the flying-pixel filter removed
-    keep_raw: np.ndarray         # (Hd, Wd) bool raw pixels that reached the output
+    registered: Registered       # where each raw pixel went (for scoring against raw-grid truth)
     color: np.ndarray            # (h, w, 3) uint8 colour at output size
     timings_ms: dict[str, float]
+
+    def reached_output(self, tolerance: float = 0.02) -> np.ndarray:
+        """(Hd, Wd) bool raw pixels whose projection lands on a kept output pixel at their own
+        depth (not removed, not hidden behind a nearer surface)."""
+        uv, z = self.registered.uv, self.registered.z
+        keep = np.zeros(z.shape, bool)
+        v, u = np.nonzero(z > 0)
+        x = np.floor(uv[v, u, 0] + 0.5).astype(np.int64)
+        y = np.floor(uv[v, u, 1] + 0.5).astype(np.int64)
+        h, w = self.depth.shape
+        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+        v, u, x, y = v[inside], u[inside], x[inside], y[inside]
+        out, zr = self.depth[y, x], z[v, u]
+        keep[v, u] = (out > 0) & (np.abs(out - zr) <= tolerance + 0.01 * zr)
+        return keep
 
 
 class DepthCleaner:
@@ -83,7 +98,7 @@ class DepthCleaner:
         t0 = time.perf_counter()
         depth = sanitise_depth(depth_m)
         flying = self._flying(depth)
-        gated = self._gate(np.where(flying, 0.0, depth).astype(np.float32))
+        gated = self._gate(depth, drop=flying)
         t['flying'] = _ms(t0)
         t0 = time.perf_counter()
         reg = self.registration.register(gated)
@@ -101,10 +116,7 @@ class DepthCleaner:
         t['mask'] = _ms(t0)
         if cfg.temporal_alpha > 0:
             clean = self._smooth(clean)
-        t0 = time.perf_counter()
-        keep_raw = _reached_output(reg.uv, reg.z, clean)
-        t['bookkeeping'] = _ms(t0)
-        return CleanResult(clean, mask, flying, keep_raw, color_out, t)
+        return CleanResult(clean, mask, flying, reg, color_out, t)
 
     def points(self, result: CleanResult) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) float32 points in the colour optical frame and their (N, 3) uint8 colours."""
@@ -131,11 +143,13 @@ class DepthCleaner:
             return paper_flying_pixels(depth, method.removeprefix('paper_'))
         return np.zeros(depth.shape, bool)
 
-    def _gate(self, depth: np.ndarray) -> np.ndarray:
-        if not self.cfg.range_gate:
-            return depth
-        m = self.cfg.mask
-        return np.where((depth >= m.min_range) & (depth <= m.max_range), depth, np.float32(0.0))
+    def _gate(self, depth: np.ndarray, drop: np.ndarray | None = None) -> np.ndarray:
+        """Depth with ``drop`` pixels and, if the gate is on, out-of-range ones set to 0."""
+        if self.cfg.range_gate:
+            m = self.cfg.mask
+            out_of_range = (depth < m.min_range) | (depth > m.max_range)
+            drop = out_of_range if drop is None else drop | out_of_range
+        return depth if drop is None else np.where(drop, np.float32(0.0), depth)
 
     def _mask(self, color: np.ndarray, registered: np.ndarray) -> np.ndarray | None:
         mode = self.cfg.mask_mode
@@ -182,25 +196,8 @@ def sanitise_depth(depth_m: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0))
 
 
-def _reached_output(uv: np.ndarray, z: np.ndarray, clean: np.ndarray, tolerance: float = 0.02) -> np.ndarray:
-    """Raw pixels whose projection lands on a kept output pixel at their own depth (not hidden)."""
-    keep = np.zeros(z.shape, bool)
-    v, u = np.nonzero(z > 0)
-    if v.size == 0:
-        return keep
-    x = np.floor(uv[v, u, 0] + 0.5).astype(np.int64)
-    y = np.floor(uv[v, u, 1] + 0.5).astype(np.int64)
-    h, w = clean.shape
-    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-    v, u, x, y = v[inside], u[inside], x[inside], y[inside]
-    out = clean[y, x]
-    zr = z[v, u]
-    keep[v, u] = (out > 0) & (np.abs(out - zr) <= tolerance + 0.01 * zr)
-    return keep
-
-
 def statistical_outlier_removal(xyz: np.ndarray, rgb: np.ndarray, neighbors: int, std_ratio: float):
-    import open3d as o3d
+    import open3d as o3d   # only when the option is on: importing Open3D costs ~1 s at start-up
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz.astype(np.float64)))
     _, idx = pcd.remove_statistical_outlier(nb_neighbors=neighbors, std_ratio=std_ratio)
     idx = np.asarray(idx, np.int64)

@@ -139,6 +139,11 @@ class DepthRegistration:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError('T_color_depth must be a finite 4x4 matrix')
         self.R, self.t = T[:3, :3].copy(), T[:3, 3].copy()
+        if registered:   # only resampled: the output pixel of each input pixel centre
+            sx, sy = self.output.width / depth.width, self.output.height / depth.height
+            u, v = np.meshgrid((np.arange(depth.width) + 0.5) * sx - 0.5, (np.arange(depth.height) + 0.5) * sy - 0.5)
+            self._grid_uv = np.stack([u, v], axis=2).astype(np.float32)
+            return
         self.rays = depth.pixel_rays().astype(np.float64)
         self._dist = np.zeros(8)
         self._dist[:len(self.output.dist)] = self.output.dist
@@ -163,12 +168,9 @@ class DepthRegistration:
         if self.registered:
             self._check(depth_m)
             out = cv2.resize(depth_m, (self.output.width, self.output.height), interpolation=cv2.INTER_NEAREST)
-            h, w = depth_m.shape
-            sx, sy = self.output.width / w, self.output.height / h
-            u, v = np.meshgrid((np.arange(w) + 0.5) * sx - 0.5, (np.arange(h) + 0.5) * sy - 0.5)
-            uv = np.stack([u, v], axis=2).astype(np.float32)
-            uv[depth_m <= 0] = np.nan
-            return Registered(out.astype(np.float32), uv, np.where(depth_m > 0, depth_m, 0).astype(np.float32))
+            valid = depth_m > 0
+            uv = np.where(valid[:, :, None], self._grid_uv, np.float32(np.nan))
+            return Registered(out.astype(np.float32), uv, np.where(valid, depth_m, 0).astype(np.float32))
         uv, zc = self.project(depth_m)
         out = np.zeros((self.output.height, self.output.width), np.float32)
         _rasterise(uv, zc, out, self.step_abs, self.step_rel)
