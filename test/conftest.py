@@ -29,6 +29,26 @@ def studio_bag(tmp_path_factory, shared_data):
     return out
 
 
+def _small_session(tmp_path_factory, name, **cfg):
+    from volcap_driver.synth.session import synthesize
+    from volcap_driver.synth.studio import SynthConfig
+    out = tmp_path_factory.mktemp(name) / 'bag'
+    synthesize(out, SynthConfig(frames=0, background_frames=0, seed=11, **cfg), progress=False)
+    return out
+
+
+@pytest.fixture(scope='session')
+def calib_bag(tmp_path_factory, shared_data):
+    """Two cameras on one stand; the first of two board poses faces them, the second turns away."""
+    return _small_session(tmp_path_factory, 'calib2', cameras=2, board_poses=2)
+
+
+@pytest.fixture(scope='session')
+def calib_bag_blind_camera(tmp_path_factory, shared_data):
+    """Three cameras; the one board pose faces the front stand, so cam2 (back stand) never sees it."""
+    return _small_session(tmp_path_factory, 'calib3', cameras=3, board_poses=1)
+
+
 @pytest.fixture
 def ros_context():
     """An rclpy context for one test, shut down afterwards."""

@@ -76,7 +76,8 @@ def test_executables_start_from_the_install_space(install, pkg, exe, studio_bag,
     params = {'bag_player': {'bag': str(studio_bag), 'as_fast_as_possible': 'true', 'topics': "['volcap/rig']"},
               'recorder': {'out': str(tmp_path / 'rec')},
               'synthetic_rig': {'cameras': 1, 'frames': 1, 'fps': 5.0},
-              'depth_filter': {'camera': 'cam0'}}[exe]
+              'depth_filter': {'camera': 'cam0'},
+              'calibration_service': {'output': str(tmp_path / 'calibration.yaml')}}[exe]
     proc = run_installed(install, pkg, exe, params, shared_data)
     try:
         lines = []

@@ -5,6 +5,9 @@
     volcap info BAG
     volcap eval depth BAG [--json OUT.json] [--figures DIR] [--frames N]
     volcap eval registration BAG [--out overlay.png] [--json OUT.json]
+    volcap board --out board.pdf
+    volcap calibrate BAG --out calibration.yaml
+    volcap eval calib calibration.yaml BAG [--json OUT.json]
     volcap demo [--out DIR]
 """
 from __future__ import annotations
@@ -16,6 +19,8 @@ import time
 from pathlib import Path
 
 from volcap_core import transport
+
+from . import calib_cli
 
 
 def cmd_synth(args) -> int:
@@ -198,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     er.add_argument('--json', help='write the measurements here')
     er.set_defaults(func=cmd_eval_registration)
 
+    calib_cli.add_parsers(sub, esub)
+
     d = sub.add_parser('demo', help='the pipeline end to end on generated data')
     d.add_argument('--out', default='demo_out')
     d.add_argument('--frames', type=int, default=30)
@@ -210,7 +217,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (FileExistsError, FileNotFoundError, ValueError, RuntimeError) as e:
+    except (FileExistsError, FileNotFoundError, ValueError, RuntimeError, KeyError) as e:
         print(f'volcap {args.command}: error: {e}', file=sys.stderr)
 
         return 2

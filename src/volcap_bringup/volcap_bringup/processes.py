@@ -13,6 +13,7 @@ NODES = {
     ('volcap_driver', 'synthetic_rig'): 'volcap_driver.synthetic_rig_node',
     ('volcap_driver', 'recorder'): 'volcap_driver.recorder_node',
     ('volcap_filter', 'depth_filter'): 'volcap_filter.depth_filter_node',
+    ('volcap_calib', 'calibration_service'): 'volcap_calib.calibration_service_node',
 }
 
 

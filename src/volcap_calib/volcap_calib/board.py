@@ -118,3 +118,32 @@ def reference_srgb8(name: str = ChartLayout.reference) -> np.ndarray:
     """(24, 3) uint8 sRGB of the reference patches (what the board prints)."""
     import colour
     return np.round(colour.cctf_encoding(reference_linear_rgb(name)) * 255).astype(np.uint8)
+
+
+def write_board(path: str | Path, board: BoardConfig, dpi: int = 300) -> Path:
+    """The board artwork at true scale: a PNG carrying its dpi, or a one-page PDF whose page is
+    exactly the board's extent (print at 100 %, no scaling)."""
+    import io
+    from volcap_core.files import atomic_write
+    path = Path(path)
+    px_per_m = dpi / 0.0254
+    art = board.render(px_per_m)
+    suffix = path.suffix.lower()
+    if suffix == '.png':
+        import matplotlib.image
+        buf = io.BytesIO()
+        matplotlib.image.imsave(buf, art, format='png', dpi=dpi)
+    elif suffix == '.pdf':
+        import matplotlib
+        matplotlib.use('Agg')
+        import matplotlib.pyplot as plt
+        x0, y0, x1, y1 = board.extent
+        fig = plt.figure(figsize=((x1 - x0) / 0.0254, (y1 - y0) / 0.0254))
+        fig.add_axes((0, 0, 1, 1)).imshow(art, interpolation='nearest')
+        fig.axes[0].set_axis_off()
+        buf = io.BytesIO()
+        fig.savefig(buf, format='pdf', dpi=dpi)
+        plt.close(fig)
+    else:
+        raise ValueError(f'board output must be .png or .pdf, got {path.name}')
+    return atomic_write(path, lambda f: f.write(buf.getvalue()))

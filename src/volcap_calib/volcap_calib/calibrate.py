@@ -1,0 +1,213 @@
+"""Rig calibration from frame sets of the moving board: the one entry point shared by the
+``calibration_service`` node and ``volcap calibrate``.
+
+``Calibrator.add`` takes one synchronised frame set, detects the board in every camera, poses
+it and keeps only what the solve needs (corners, a few depth points, the 24 patch colours), so
+a long calibration session costs little memory. ``Calibrator.solve`` runs the joint extrinsic
+solve and the per-camera colour fits and returns a ``Calibration``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from volcap_core.calibration import Calibration, CameraCalibration
+from volcap_core.camera import CameraModel
+from volcap_core.poses import transform_points
+from volcap_core.rig import Rig
+
+from .board import BoardConfig, reference_srgb8
+from .colour import METHODS, ColourFit, fit_camera_colour, illuminated_reference, view_illumination
+from .detect import BoardDetector, DetectionError
+from .extrinsics import (CalibrationError, ExtrinsicResult, Observation, SolverConfig, check_against_depth,
+                         sed_baseline, solve_rig, target_depth_points, target_pose)
+
+
+@dataclass
+class CameraFrame:
+    color: np.ndarray                  # (H, W, 3) uint8 RGB
+    color_model: CameraModel
+    depth: np.ndarray | None = None    # (h, w) float32 metres, depth camera geometry
+    depth_model: CameraModel | None = None
+
+
+@dataclass
+class CalibrationConfig:
+    reference: str | None = None         # default: the rig's first camera
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    use_depth: bool = True
+    colour_methods: tuple[str, ...] = METHODS
+    colour_method: str | None = None     # None: the best leave-one-patch-out model
+    min_patch_px: float = 12.0           # shortest patch side in the image to sample it
+    patch_inner: float = 0.6             # fraction of the patch (per side) that is averaged
+    max_chart_angle_deg: float = 70.0    # chart seen more obliquely than this is not sampled
+    min_colour_views: int = 1
+
+
+@dataclass
+class CalibrationOutcome:
+    calibration: Calibration
+    extrinsics: ExtrinsicResult
+    colour: dict[str, ColourFit]
+    colour_errors: dict[str, str]
+
+
+def patch_colours(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray, board: BoardConfig,
+                  inner: float = 0.6, min_side_px: float = 12.0, max_angle_deg: float = 70.0) -> np.ndarray:
+    """(24, 3) sRGB in [0, 1] of each chart patch, robust (inter-quartile) mean of its central
+    part, and (24, 2) the patch centres in the image; NaN rows for patches out of view, too
+    small, or seen too obliquely."""
+    out = np.full((board.chart.rows * board.chart.columns, 3), np.nan)
+    centres_px = np.full((len(out), 2), np.nan)
+    normal = T_cam_board[:3, 2]
+    corners = board.patch_corners()
+    centres = corners.mean(axis=1)
+    for p, (quad, centre) in enumerate(zip(corners, centres)):
+        inner_quad = centre + (quad - centre) * inner
+        pts_cam = transform_points(T_cam_board, inner_quad)
+        if np.any(pts_cam[:, 2] <= 0):
+            continue
+        ray = transform_points(T_cam_board, centre[None])[0]
+        cos = abs(normal @ ray) / np.linalg.norm(ray)
+        if cos < np.cos(np.radians(max_angle_deg)):
+            continue
+        px = camera.project(pts_cam)
+        side = min(np.linalg.norm(px - np.roll(px, 1, axis=0), axis=1)) / inner
+        h, w = image.shape[:2]
+        if side < min_side_px or px.min() < 0 or px[:, 0].max() > w - 1 or px[:, 1].max() > h - 1:
+            continue
+        x0, y0 = np.floor(px.min(0)).astype(int)
+        x1, y1 = np.ceil(px.max(0)).astype(int) + 1
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.fillConvexPoly(mask, np.round(px - (x0, y0)).astype(np.int32), 1)
+        values = image[y0:y1, x0:x1][mask.astype(bool)].astype(np.float64)
+        if len(values) < 9:
+            continue
+        lo, hi = np.percentile(values, [25, 75], axis=0)
+        keep = np.all((values >= lo) & (values <= hi), axis=1)
+        out[p] = (values[keep] if keep.sum() >= 3 else values).mean(axis=0) / 255.0
+        centres_px[p] = px.mean(axis=0)
+    return out, centres_px
+
+
+class Calibrator:
+    def __init__(self, rig: Rig, board: BoardConfig, cfg: CalibrationConfig = CalibrationConfig()):
+        if cfg.reference is not None and cfg.reference not in rig.names:
+            raise ValueError(f'reference camera {cfg.reference!r} is not in the rig ({", ".join(rig.names)})')
+        self.rig, self.board, self.cfg = rig, board, cfg
+        self.detector = BoardDetector(board, cfg.solver.min_corners)
+        self.observations: list[Observation] = []
+        self.rejected: dict[str, dict[int, str]] = {c: {} for c in rig.names}
+        self.patches: dict[str, list[tuple[int, np.ndarray]]] = {c: [] for c in rig.names}
+        self.patch_pixels: dict[str, list[np.ndarray]] = {c: [] for c in rig.names}
+        self.models: dict[str, CameraModel] = {}
+        self.views = 0
+        x0, y0 = 0.0, 0.0
+        gw, gh = board.grid_size
+        self._grid_region = (x0, y0, gw, gh)
+
+    def add(self, view: int, frames: dict[str, CameraFrame]) -> dict[str, str]:
+        """Detect and pose the board in one frame set; returns each camera's outcome in words."""
+        self.views += 1
+        status = {}
+        for name, frame in frames.items():
+            if name not in self.rejected:
+                status[name] = 'not in the rig'
+                continue
+            try:
+                status[name] = self._add_camera(view, name, frame)
+            except (DetectionError, ValueError) as e:
+                self.rejected[name][view] = str(e)
+                status[name] = str(e)
+        return status
+
+    def _add_camera(self, view: int, name: str, frame: CameraFrame) -> str:
+        model = frame.color_model
+        if frame.color.shape[:2] != (model.height, model.width):
+            raise ValueError(f'colour image is {frame.color.shape[1]}x{frame.color.shape[0]}, camera_info says '
+                             f'{model.width}x{model.height}')
+        if self.models.get(name, model) != model:
+            raise ValueError('colour intrinsics changed during the calibration session')
+        detection = self.detector.detect(frame.color, model)
+        T, rms = target_pose(detection, model)
+        obs = Observation(name, view, detection, T, rms)
+        if self.cfg.use_depth and frame.depth is not None and frame.depth_model is not None:
+            obs.plane_points = target_depth_points(frame.depth, frame.depth_model,
+                                                   self.rig.camera(name).T_color_depth, T, self._grid_region)
+            reason = check_against_depth(obs, model, self.cfg.solver)
+            if reason:
+                raise ValueError(reason)
+        self.models[name] = model
+        self.observations.append(obs)
+        colours, centres = patch_colours(frame.color, model, T, self.board, self.cfg.patch_inner, self.cfg.min_patch_px,
+                                self.cfg.max_chart_angle_deg)
+        if np.isfinite(colours).all(axis=1).any():
+            self.patches[name].append((view, colours))
+            self.patch_pixels[name].append(centres)
+        return f'{len(detection)} corners, PnP {rms:.2f} px'
+
+    def reference(self) -> np.ndarray:
+        return reference_srgb8(self.board.chart.reference) / 255.0
+
+    def illumination(self) -> dict[int, np.ndarray]:
+        return view_illumination({c: items for c, items in self.patches.items() if items}, self.reference(),
+                                 self.patch_xy())
+
+    def patch_xy(self) -> np.ndarray:
+        """(24, 2) patch centres on the board relative to the chart centre (m)."""
+        centres = self.board.patch_corners().mean(axis=1)[:, :2]
+        return centres - centres.mean(axis=0)
+
+    def colour_samples(self, camera: str, illumination: dict[int, np.ndarray]
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Measured (N, 3) and target (N, 3) sRGB in [0, 1] (the reference chart under each view's
+        illumination) and patch numbers (N,) of every sampled patch of ``camera``."""
+        reference, xy = self.reference(), self.patch_xy()
+        measured, ref, patch = [], [], []
+        for view, colours in self.patches[camera]:
+            ok = np.isfinite(colours).all(axis=1)
+            measured.append(colours[ok])
+            ref.append(illuminated_reference(reference[ok], illumination[view], xy[ok]))
+            patch.append(np.nonzero(ok)[0])
+        if not measured:
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, int)
+        return np.vstack(measured), np.vstack(ref), np.concatenate(patch)
+
+    def solve(self, baseline: bool = False) -> tuple[CalibrationOutcome, ExtrinsicResult | None]:
+        """Raises CalibrationError naming the cameras that cannot be calibrated."""
+        reference = self.cfg.reference or self.rig.names[0]
+        models = {c: self.models.get(c) for c in self.rig.names}
+        unseen = [c for c, m in models.items() if m is None]
+        if unseen:
+            raise CalibrationError(f'cameras never saw the board ({self.views} frame sets)',
+                                   {c: _why_unseen(self.rejected[c]) for c in unseen})
+        extrinsics = solve_rig(self.observations, models, reference, self.cfg.solver, self.rejected)
+        fits, colour_errors = {}, {}
+        illumination = self.illumination() if any(self.patches.values()) else {}
+        for c in self.rig.names:
+            measured, ref, patch = self.colour_samples(c, illumination)
+            if len(np.unique(patch)) < 12:
+                colour_errors[c] = f'chart seen on {len(np.unique(patch))} of 24 patches, need 12'
+                continue
+            fits[c] = fit_camera_colour(measured, ref, patch, self.cfg.colour_methods, self.cfg.colour_method)
+        cams = {}
+        for c in self.rig.names:
+            rep = extrinsics.cameras[c]
+            cams[c] = CameraCalibration(extrinsics.T_world_color[c], self.rig.camera(c).color_frame,
+                                        rep.reproj_rms_px, rep.depth_rms_mm, rep.views,
+                                        fits[c].to_dict() if c in fits else None)
+        calibration = Calibration(reference, self.rig.camera(reference).color_frame, cams, extrinsics.method,
+                                  extra={'board': self.board.to_dict(), 'rig': self.rig.name,
+                                         'frame_sets': self.views,
+                                         'colour_errors': colour_errors})
+        base = sed_baseline(self.observations, models, reference) if baseline else None
+        return CalibrationOutcome(calibration, extrinsics, fits, colour_errors), base
+
+
+def _why_unseen(rejected: dict[int, str]) -> str:
+    if not rejected:
+        return 'no frames'
+    reasons = sorted(set(rejected.values()))
+    return f'board not usable in {len(rejected)} frame sets ({"; ".join(reasons[:3])})'

@@ -1,0 +1,221 @@
+"""Per-camera colour correction from the board's 24-patch chart (paper 000 Eqs. 6-10 and better).
+
+Measured and reference patch colours are sRGB in [0, 1]. The paper's diagonal matrix works on
+the encoded values as published; the other models work on linear RGB (sRGB decoding), where a
+camera's gain, white balance and crosstalk are linear: a 3x3 matrix, an affine 3x4, and
+Finlayson's root-polynomial (colour-science). The default model is the one with the smallest
+leave-one-patch-out CIEDE2000.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import colour
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+METHODS = ('paper_diagonal', 'matrix_3x3', 'affine_3x4', 'root_polynomial_2', 'root_polynomial_3', 'gamma_3x3')
+_ROOT_DEGREE = {'root_polynomial_2': 2, 'root_polynomial_3': 3}
+
+
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    return colour.cctf_decoding(np.clip(rgb, 0.0, 1.0), function='sRGB')
+
+
+def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
+    return colour.cctf_encoding(np.clip(rgb, 0.0, 1.0), function='sRGB')
+
+
+def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
+    """CIELAB (D65) of sRGB values in [0, 1]."""
+    XYZ = colour.sRGB_to_XYZ(np.clip(rgb, 0.0, 1.0))
+    return colour.XYZ_to_Lab(XYZ, colour.CCS_ILLUMINANTS['CIE 1931 2 Degree Standard Observer']['D65'])
+
+
+def delta_e2000(rgb_a: np.ndarray, rgb_b: np.ndarray) -> np.ndarray:
+    return colour.delta_E(srgb_to_lab(rgb_a), srgb_to_lab(rgb_b), method='CIE 2000')
+
+
+def _features(method: str, linear: np.ndarray, exponents=None) -> np.ndarray:
+    if method == 'gamma_3x3':
+        return np.clip(linear, 0.0, None) ** np.asarray(exponents if exponents is not None else (1.0, 1.0, 1.0))
+    if method == 'matrix_3x3':
+        return linear
+    if method == 'affine_3x4':
+        return np.concatenate([linear, np.ones(linear.shape[:-1] + (1,))], axis=-1)
+    if method in _ROOT_DEGREE:
+        return colour.characterisation.polynomial_expansion_Finlayson2015(linear, _ROOT_DEGREE[method])
+    raise ValueError(f'unknown colour model {method!r}; choose from {METHODS}')
+
+
+@dataclass
+class ColourModel:
+    """corrected = features(camera colour) @ matrix.T (linear RGB), or the paper's diagonal on sRGB.
+
+    ``gamma_3x3`` raises each linearised channel to its own exponent first: a camera whose tone
+    curve is not quite sRGB (gamma 2.0-2.4) is then linear again before the matrix."""
+    method: str
+    matrix: np.ndarray   # (3, K)
+    exponents: tuple[float, float, float] | None = None   # gamma_3x3 only
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f'unknown colour model {self.method!r}; choose from {METHODS}')
+        self.matrix = np.asarray(self.matrix, dtype=np.float64)
+
+    def apply(self, rgb: np.ndarray) -> np.ndarray:
+        """sRGB (..., 3) in [0, 1] -> corrected sRGB in [0, 1]."""
+        rgb = np.asarray(rgb, dtype=np.float64)
+        if self.method == 'paper_diagonal':
+            return np.clip(rgb @ self.matrix.T, 0.0, 1.0)
+        return linear_to_srgb(_features(self.method, srgb_to_linear(rgb), self.exponents) @ self.matrix.T)
+
+    def apply_image(self, image: np.ndarray) -> np.ndarray:
+        """uint8 RGB image -> corrected uint8 RGB image (a 256^3 table would be the live form)."""
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f'expected an (H, W, 3) uint8 image, got {image.dtype} {image.shape}')
+        if self.method == 'paper_diagonal':
+            return cv2.transform(image, self.matrix.astype(np.float32))
+        out = self.apply(image.reshape(-1, 3) / 255.0)
+        return np.round(out * 255.0).astype(np.uint8).reshape(image.shape)
+
+    def to_dict(self) -> dict:
+        d = {'method': self.method, 'matrix': [[float(v) for v in row] for row in self.matrix]}
+        if self.exponents is not None:
+            d['exponents'] = [float(v) for v in self.exponents]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'ColourModel':
+        exponents = d.get('exponents')
+        return cls(d['method'], np.asarray(d['matrix'], dtype=np.float64),
+                   tuple(float(v) for v in exponents) if exponents is not None else None)
+
+
+def fit_model(method: str, measured: np.ndarray, reference: np.ndarray) -> ColourModel:
+    """Least-squares fit of one model; measured and reference are (N, 3) sRGB in [0, 1]."""
+    measured, reference = np.asarray(measured, np.float64), np.asarray(reference, np.float64)
+    if measured.shape != reference.shape or measured.ndim != 2 or measured.shape[1] != 3:
+        raise ValueError(f'expected matching (N, 3) colours, got {measured.shape} and {reference.shape}')
+    if not np.isfinite(measured).all():
+        raise ValueError('measured patch colours contain NaN or inf')
+    if method == 'paper_diagonal':
+        # Eqs. 9-10: k = mean(reference) / mean(observed), per channel.
+        return ColourModel(method, np.diag(reference.mean(0) / np.maximum(measured.mean(0), 1e-6)))
+    linear, target = srgb_to_linear(measured), srgb_to_linear(reference)
+    X = _features(method, linear)
+    if len(X) < X.shape[1]:
+        raise ValueError(f'{method} needs at least {X.shape[1]} patches, got {len(X)}')
+    if method == 'gamma_3x3':
+        # Variable projection: the matrix is linear given the exponents, so only 3 are searched.
+        def residual(g):
+            F = _features(method, linear, g)
+            return (F @ np.linalg.lstsq(F, target, rcond=None)[0] - target).ravel()
+        g = least_squares(residual, np.ones(3), bounds=(0.5, 2.0)).x
+        M, *_ = np.linalg.lstsq(_features(method, linear, g), target, rcond=None)
+        return ColourModel(method, M.T, tuple(float(v) for v in g))
+    M, *_ = np.linalg.lstsq(X, target, rcond=None)
+    return ColourModel(method, M.T)
+
+
+def leave_one_patch_out(method: str, measured: np.ndarray, reference: np.ndarray, patch: np.ndarray) -> float:
+    """Mean CIEDE2000 of each patch predicted by a model fitted without that patch (every view
+    of it held out together); ``patch`` gives each row's patch number."""
+    errors = []
+    for p in np.unique(patch):
+        held = patch == p
+        model = fit_model(method, measured[~held], reference[~held])
+        errors.append(delta_e2000(model.apply(measured[held]), reference[held]))
+    return float(np.mean(np.concatenate(errors)))
+
+
+def component_differences(measured: np.ndarray, reference: np.ndarray) -> dict:
+    """Paper 000 Table 1: mean reference-minus-camera difference of R, G, B and I = (R+G+B)/3 in
+    8-bit levels (signed, as published) and the mean absolute difference."""
+    d = (np.asarray(reference) - np.asarray(measured)) * 255.0
+    d = np.concatenate([d, d.mean(axis=1, keepdims=True)], axis=1)
+    keys = ('R', 'G', 'B', 'I')
+    return {'signed': dict(zip(keys, map(float, d.mean(0)))), 'abs': dict(zip(keys, map(float, np.abs(d).mean(0))))}
+
+
+@dataclass
+class ColourFit:
+    model: ColourModel
+    loo_de2000: dict[str, float]     # every candidate's leave-one-patch-out error
+    before: dict
+    after: dict
+    de2000_before: float
+    de2000_after: float
+    samples: int
+
+    def to_dict(self) -> dict:
+        return {'method': self.model.method, 'matrix': self.model.to_dict()['matrix'],
+                'loo_de2000': self.loo_de2000, 'before': self.before, 'after': self.after,
+                'patch_de2000_before': self.de2000_before, 'patch_de2000_after': self.de2000_after,
+                'samples': self.samples}
+
+
+def view_illumination(samples: dict[str, list[tuple[int, np.ndarray]]], reference: np.ndarray,
+                      patch_xy: np.ndarray, iterations: int = 20) -> dict[int, np.ndarray]:
+    """Per-view illumination of the chart, shared by every camera that saw the view.
+
+    The chart is matte, so in one view every camera sees the same radiance: reference albedo
+    times the illumination at the board's pose, which changes from view to view (and across the
+    chart, lights being near) as the board turns between differently coloured lights. Per view
+    and channel it is modelled as a plane over the chart, e0 + ex x + ey y (``patch_xy``: patch
+    centres in metres relative to the chart centre). Alternating least squares over per-camera
+    3x3 models and these illuminants separates the two; the mean e0 over the views is fixed at
+    (1, 1, 1), the level the corrected images are brought to. ``samples`` maps each camera to
+    (view, (24, 3) sRGB patch colours with NaN rows for unsampled patches). Returns per view a
+    (3, 3) array: rows R, G, B; columns e0, ex, ey."""
+    ref = srgb_to_linear(np.asarray(reference, np.float64))
+    basis = np.hstack([np.ones((len(patch_xy), 1)), patch_xy])          # (24, 3)
+    views = sorted({v for items in samples.values() for v, _ in items})
+    E = {v: np.array([[1.0, 0.0, 0.0]] * 3) for v in views}
+    rows = {c: [(v, np.isfinite(m).all(axis=1), srgb_to_linear(np.nan_to_num(m))) for v, m in items]
+            for c, items in samples.items()}
+    for _ in range(iterations):
+        lhs = {v: [] for v in views}
+        rhs = {v: [] for v in views}
+        for c, items in rows.items():
+            X = np.vstack([m[ok] for _, ok, m in items])
+            Y = np.vstack([illumination_at(E[v], basis[ok]) * ref[ok] for v, ok, _ in items])
+            M, *_ = np.linalg.lstsq(X, Y, rcond=None)
+            for v, ok, m in items:
+                lhs[v].append((ok, m[ok] @ M))
+        for v in views:
+            E_v = np.empty((3, 3))
+            A = np.vstack([basis[ok] for ok, _ in lhs[v]])
+            R = np.vstack([ref[ok] for ok, _ in lhs[v]])
+            P = np.vstack([pred for _, pred in lhs[v]])
+            for k in range(3):
+                E_v[k] = np.linalg.lstsq(A * R[:, k:k + 1], P[:, k], rcond=None)[0]
+            E[v] = E_v
+        mean = np.mean([E[v][:, 0] for v in views], axis=0)
+        E = {v: E[v] / mean[:, None] for v in views}
+    return E
+
+
+def illumination_at(E_v: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """(N, 3) RGB illumination at patches with basis rows (1, x, y)."""
+    return basis @ E_v.T
+
+
+def illuminated_reference(reference: np.ndarray, E_v: np.ndarray, patch_xy: np.ndarray) -> np.ndarray:
+    """sRGB in [0, 1] of reference patches (N, 3) at ``patch_xy`` (N, 2) under one view's illumination."""
+    basis = np.hstack([np.ones((len(patch_xy), 1)), patch_xy])
+    return linear_to_srgb(srgb_to_linear(np.asarray(reference, np.float64)) * illumination_at(E_v, basis))
+
+
+def fit_camera_colour(measured: np.ndarray, reference: np.ndarray, patch: np.ndarray,
+                      methods: tuple[str, ...] = METHODS, method: str | None = None) -> ColourFit:
+    """Fit every candidate, score each by leave-one-patch-out CIEDE2000, keep ``method`` or the best."""
+    usable = [m for m in methods if m == 'paper_diagonal' or len(np.unique(patch)) > _features(m, np.zeros((1, 3))).shape[1]]
+    loo = {m: leave_one_patch_out(m, measured, reference, patch) for m in usable}
+    chosen = method or min(loo, key=loo.get)
+    model = fit_model(chosen, measured, reference)
+    corrected = model.apply(measured)
+    return ColourFit(model, loo, component_differences(measured, reference), component_differences(corrected, reference),
+                     float(delta_e2000(measured, reference).mean()), float(delta_e2000(corrected, reference).mean()),
+                     len(measured))

@@ -1,0 +1,78 @@
+"""Calibration report figures: camera poses (top and side views, with the board views) and
+per-camera colour errors before and after correction."""
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from volcap_core.files import atomic_write
+
+
+def _save(fig, path: str | Path) -> Path:
+    buf = io.BytesIO()
+    fig.savefig(buf, format='png', dpi=110, bbox_inches='tight')
+    return atomic_write(path, lambda f: f.write(buf.getvalue()))
+
+
+def poses_figure(path: str | Path, T_world_color: dict[str, np.ndarray], T_world_target: dict[int, np.ndarray],
+                 reports: dict[str, dict], title: str = 'camera poses',
+                 T_gt: dict[str, np.ndarray] | None = None) -> Path:
+    """Top (x-z) and side (x-y) views of the rig in the world frame; each camera is drawn as its
+    centre and viewing direction, labelled with its reprojection RMS."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
+    for ax, (i, j, names) in zip(axes, ((0, 2, ('x', 'z')), (0, 1, ('x', 'y')))):
+        for c, T in T_world_color.items():
+            o, d = T[:3, 3], T[:3, 2] * 0.35
+            ax.plot(o[i], o[j], 'o', color='tab:blue')
+            ax.arrow(o[i], o[j], d[i], d[j], head_width=0.04, color='tab:blue', length_includes_head=True)
+            rms = reports.get(c, {}).get('reproj_rms_px')
+            ax.annotate(f'{c}' + (f'\n{rms:.2f} px' if rms is not None else ''), (o[i], o[j]), fontsize=8,
+                        xytext=(4, 4), textcoords='offset points')
+            if T_gt is not None and c in T_gt:
+                ax.plot(T_gt[c][i, 3], T_gt[c][j, 3], 'x', color='tab:red')
+        for T in T_world_target.values():
+            ax.plot(T[i, 3], T[j, 3], 's', color='tab:orange', ms=4)
+        ax.set_xlabel(f'{names[0]} (m)')
+        ax.set_ylabel(f'{names[1]} (m)')
+        ax.set_aspect('equal', adjustable='datalim')
+        ax.grid(alpha=0.3)
+        if j == 1:
+            ax.invert_yaxis()   # optical y points down
+    axes[0].set_title(f'{title}: top view (world = reference colour frame)')
+    axes[1].set_title('front view; squares: board views' + ('; x: ground truth' if T_gt else ''))
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
+
+
+def colour_figure(path: str | Path, colour: dict[str, dict]) -> Path:
+    """Per camera: mean |R|, |G|, |B|, |I| difference to the reference and patch CIEDE2000,
+    before and after correction."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    names = list(colour)
+    x = np.arange(len(names))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
+    width = 0.2
+    for k, (ch, col) in enumerate(zip('RGBI', ('tab:red', 'tab:green', 'tab:blue', 'grey'))):
+        axes[0].bar(x + (k - 1.5) * width, [colour[c]['before_abs'][ch] for c in names], width, color=col, alpha=0.35)
+        axes[0].bar(x + (k - 1.5) * width, [colour[c]['after_abs'][ch] for c in names], width, color=col,
+                    label=f'|{ch}|')
+    axes[0].set_title('mean |difference| to the chart (8-bit levels); light: before, dark: after')
+    axes[1].bar(x - 0.2, [colour[c]['patch_de2000_before'] for c in names], 0.4, label='before', color='grey')
+    axes[1].bar(x + 0.2, [colour[c]['patch_de2000_after'] for c in names], 0.4, label='after', color='tab:green')
+    axes[1].axhline(2.0, ls='--', color='k', lw=0.8)
+    axes[1].set_title('mean CIEDE2000 on the 24 patches')
+    for ax in axes:
+        ax.set_xticks(x, [f'{c}\n{colour[c]["method"]}' for c in names], fontsize=7)
+        ax.legend(fontsize=8)
+        ax.grid(axis='y', alpha=0.3)
+    out = _save(fig, path)
+    plt.close(fig)
+    return out

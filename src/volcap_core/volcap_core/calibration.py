@@ -1,0 +1,76 @@
+"""The rig calibration file (``calibration.yaml``): per camera T_world_color, fit quality and
+colour model. Written atomically; a failed calibration never replaces a good file."""
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .files import atomic_write
+from .poses import matrix_from_list, matrix_to_list
+
+VERSION = 1
+
+
+@dataclass
+class CameraCalibration:
+    T_world_color: np.ndarray
+    color_frame: str = ''
+    reproj_rms_px: float | None = None
+    depth_rms_mm: float | None = None
+    views: int = 0
+    colour: dict | None = None      # {'method', 'matrix', fit errors...}; see volcap_calib.colour
+
+    def to_dict(self) -> dict:
+        return {'T_world_color': matrix_to_list(self.T_world_color), 'color_frame': self.color_frame,
+                'reproj_rms_px': self.reproj_rms_px, 'depth_rms_mm': self.depth_rms_mm, 'views': self.views,
+                'colour': self.colour}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'CameraCalibration':
+        return cls(matrix_from_list(d['T_world_color']), d.get('color_frame', ''), d.get('reproj_rms_px'),
+                   d.get('depth_rms_mm'), int(d.get('views', 0)), d.get('colour'))
+
+
+@dataclass
+class Calibration:
+    reference: str
+    world_frame: str
+    cameras: dict[str, CameraCalibration]
+    method: str = 'joint_least_squares'
+    created: str = field(default_factory=lambda: dt.datetime.now(dt.timezone.utc).isoformat(timespec='seconds'))
+    extra: dict = field(default_factory=dict)   # board, solver settings, summary figures
+
+    def T_world_color(self, camera: str) -> np.ndarray:
+        if camera not in self.cameras:
+            raise KeyError(f'camera {camera!r} is not in the calibration ({", ".join(self.cameras)})')
+        return self.cameras[camera].T_world_color
+
+    def to_yaml(self) -> str:
+        doc = {'version': VERSION, 'created': self.created, 'reference': self.reference,
+               'world_frame': self.world_frame, 'method': self.method,
+               'cameras': {n: c.to_dict() for n, c in self.cameras.items()}, **self.extra}
+        return yaml.safe_dump(doc, sort_keys=False)
+
+    @classmethod
+    def from_yaml(cls, text: str) -> 'Calibration':
+        d = yaml.safe_load(text)
+        if not isinstance(d, dict) or 'cameras' not in d:
+            raise ValueError('not a volcap calibration (no cameras)')
+        if d.get('version') != VERSION:
+            raise ValueError(f'calibration version {d.get("version")!r} is not supported (expected {VERSION})')
+        known = {'version', 'created', 'reference', 'world_frame', 'method', 'cameras'}
+        return cls(d['reference'], d['world_frame'],
+                   {n: CameraCalibration.from_dict(c) for n, c in d['cameras'].items()},
+                   d.get('method', ''), d.get('created', ''), {k: v for k, v in d.items() if k not in known})
+
+    def save(self, path: str | Path) -> Path:
+        text = self.to_yaml()
+        return atomic_write(path, lambda f: f.write(text), binary=False)
+
+    @classmethod
+    def load(cls, path: str | Path) -> 'Calibration':
+        return cls.from_yaml(Path(path).read_text())
