@@ -38,6 +38,8 @@ demo: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/transport.py
 	$(PY) bench/filter.py
+	test -d bench_out/calib40 || .venv/bin/volcap synth --out bench_out/calib40 --frames 0 --board-poses 40 --background-frames 0 --seed 5 --quiet
+	$(PY) bench/calib.py bench_out/calib40
 
 colcon: $(STAMP)
 	$(VENV)/bin/colcon build --base-paths src --build-base build --install-base install
