@@ -29,7 +29,8 @@ def _replay_and_call(bag, probe, procs, output):
     procs.append(start_node('volcap_calib', 'calibration_service', {'output': str(output), 'cameras': gt.rig.names}))
     # The player stays up after the bag ends so that its latched rig description stays available.
     procs.append(start_node('volcap_driver', 'bag_player', {'bag': str(bag), 'wait_for_subscribers': 60.0,
-                                                            'topics': _played(bag), 'exit_when_done': False}))
+                                                            'topics': _played(bag), 'exit_when_done': False,
+                                                            'rate': 0.05}))   # spaced: sensor QoS drops bursts
 
     def gathered():
         return any(s.message.endswith(f'in {sets} frame sets') for _, m in probe.got['/' + topics.DIAGNOSTICS]
