@@ -37,7 +37,7 @@ def main(bag: str) -> None:
                                   for n, f in fs.cameras.items()})
     t_add = (time.perf_counter() - t0) / len(images)
     t0 = time.perf_counter()
-    outcome, _ = calibrator.solve()
+    outcome = calibrator.solve()
     t_solve = time.perf_counter() - t0
     t0 = time.perf_counter()
     sed_baseline(calibrator.observations, calibrator.models, outcome.calibration.reference)

@@ -12,7 +12,7 @@ from volcap_calib.board import BoardConfig, reference_srgb8, write_board
 from volcap_calib.calibrate import CalibrationConfig, CameraFrame, Calibrator
 from volcap_calib.colour import (ColourModel, component_differences, delta_e2000, fit_camera_colour, fit_model,
                                  srgb_to_linear, linear_to_srgb)
-from volcap_calib.detect import BoardDetector, DetectionError, detect_chessboard
+from volcap_calib.detect import BoardDetector, Detection, DetectionError, detect_chessboard
 from volcap_calib.evaluate import pose_errors, rig_reprojection
 from volcap_calib.extrinsics import (CalibrationError, Observation, SolverConfig, kabsch, sed_baseline,
                                      sed_gradient_descent, solve_rig, target_pose)
@@ -76,19 +76,24 @@ def test_real_stereo_rig_baseline_matches_opencv_stereo_calibrate(shared_data):
         for name, det in zip(models, dets):
             T, rms = target_pose(det, models[name])
             obs.append(Observation(name, view, det, T, rms))
-    # The published left intrinsics fit these photos to ~2 px (PnP per view), so the consistency
-    # limit is raised; both solvers see the same residuals.
-    ours = solve_rig(obs, models, 'left', SolverConfig(depth_weight=0.0, max_reproj_rms_px=3.0))
     obj = [d[0].object_points.astype(np.float32) for _, d in pairs]
-    rms, *_, R, t, _, _ = cv2.stereoCalibrate(obj, [d[0].pixels.astype(np.float32) for _, d in pairs],
-                                              [d[1].pixels.astype(np.float32) for _, d in pairs],
-                                              M1, D1, M2, D2, size, flags=cv2.CALIB_FIX_INTRINSIC)
-    T_right_left = invert(ours.T_world_color['right'])
-    baseline_ours, baseline_cv = np.linalg.norm(T_right_left[:3, 3]), np.linalg.norm(t)
-    assert abs(baseline_ours - baseline_cv) / baseline_cv < 0.01
-    assert rotation_angle_deg(T_right_left[:3, :3], R) < 0.25   # robust loss vs plain least squares
-    ours_rms = np.sqrt((ours.cameras['left'].reproj_rms_px ** 2 + ours.cameras['right'].reproj_rms_px ** 2) / 2)
-    assert ours_rms <= rms * 1.05
+    cv_rms, *_, R, t, _, _ = cv2.stereoCalibrate(obj, [d[0].pixels.astype(np.float32) for _, d in pairs],
+                                                 [d[1].pixels.astype(np.float32) for _, d in pairs],
+                                                 M1, D1, M2, D2, size, flags=cv2.CALIB_FIX_INTRINSIC)
+    # The published left intrinsics only fit these photos to ~2 px (PnP per view; OpenCV's RMS is
+    # 1.8 px), above the default consistency limit of 1.5 px.
+    limit = 3.0
+    # Default (robust) solve: the baseline length is the check.
+    robust = solve_rig(obs, models, 'left', SolverConfig(depth_weight=0.0, max_reproj_rms_px=limit))
+    T_right_left = invert(robust.T_world_color['right'])
+    assert abs(np.linalg.norm(T_right_left[:3, 3]) - np.linalg.norm(t)) / np.linalg.norm(t) < 0.01
+    # Plain least squares minimises stereoCalibrate's objective: the same rig to numerical precision.
+    plain = solve_rig(obs, models, 'left', SolverConfig(depth_weight=0.0, max_reproj_rms_px=limit, robust_scale=1e6))
+    T_right_left = invert(plain.T_world_color['right'])
+    assert rotation_angle_deg(T_right_left[:3, :3], R) < 0.005
+    assert np.linalg.norm(T_right_left[:3, 3] - t.ravel()) < 1e-3 * np.linalg.norm(t)
+    rms = np.sqrt(np.mean([plain.cameras[c].reproj_rms_px ** 2 for c in models]))
+    assert abs(rms - cv_rms) < 0.01
 
 
 # --- the rig solver on synthetic observations ------------------------------------------------
@@ -128,7 +133,6 @@ def _observe(T_world_cam, models, rng, views=24, noise_px=0.3, board=BoardConfig
             inside = (px[:, 0] > 0) & (px[:, 0] < 1279) & (px[:, 1] > 0) & (px[:, 1] < 719)
             if inside.sum() < 8:
                 continue
-            from volcap_calib.detect import Detection
             det = Detection(np.nonzero(inside)[0], px[inside], obj[inside])
             T0, rms = target_pose(det, models[c])
             plane = transform_points(T_cb, np.c_[rng.uniform(0.05, 0.55, (200, 2)), np.zeros(200)])
@@ -172,7 +176,6 @@ def test_solver_names_cameras_it_cannot_place():
 
 
 def test_degenerate_views_are_refused():
-    from volcap_calib.detect import Detection
     cam = CameraModel(640, 480, 500.0, 500.0, 320.0, 240.0)
     line = np.c_[np.linspace(0, 0.3, 6), np.zeros(6), np.zeros(6)]
     px = cam.project(line + [0, 0, 1.0])
@@ -243,7 +246,7 @@ def test_calibrator_on_a_rendered_session(calib_bag):
     from volcap_driver.synth.session import GroundTruth
     gt = GroundTruth(calib_bag)
     calibrator = calibrator_from_bag(calib_bag, BoardConfig.from_yaml(), CalibrationConfig(), progress=False)
-    outcome, base = calibrator.solve(baseline=True)
+    outcome = calibrator.solve()
     err = pose_errors(outcome.extrinsics.T_world_color, {c: gt.T_world_color(c) for c in gt.rig.names}, 'cam0')
     assert err['cam1']['rot_err_deg'] < 0.2 and err['cam1']['trans_err_mm'] < 5.0
     for c, fit in outcome.colour.items():

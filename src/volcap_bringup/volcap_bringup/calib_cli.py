@@ -60,7 +60,7 @@ def cmd_calibrate(args) -> int:
     from volcap_calib.report import colour_figure, poses_figure
     calibrator = calibrator_from_bag(args.bag, _board(args.board), _config(args), args.all_frames, not args.quiet)
     try:
-        outcome, _ = calibrator.solve()
+        outcome = calibrator.solve()
     except CalibrationError as e:
         print(f'calibration failed, {args.out} left as it was: {e}')
         return 1
@@ -105,10 +105,10 @@ def cmd_eval_calib(args) -> int:
     calibrator = calibrator_from_bag(args.bag, _board(args.board), cfg, False, not args.quiet)
     T_gt = {c: gt.T_world_color(c) for c in calibration.cameras}
     T_est = {c: cam.T_world_color for c, cam in calibration.cameras.items()}
-    ours = extrinsic_report(T_est, calibrator, T_gt, calibration.reference)
     missing = [c for c in calibration.cameras if c not in calibrator.models]
     if missing:
         raise ValueError(f'cameras {missing} never saw the board in {args.bag}')
+    ours = extrinsic_report(T_est, calibrator, T_gt, calibration.reference)
     baseline = sed_baseline(calibrator.observations, calibrator.models, calibration.reference)
     base = extrinsic_report(baseline.T_world_color, calibrator, T_gt, calibration.reference)
     colour = colour_report(calibration, calibrator)

@@ -22,7 +22,7 @@ from .board import BoardConfig, reference_srgb8
 from .colour import METHODS, ColourFit, fit_camera_colour, illuminated_reference, view_illumination
 from .detect import BoardDetector, DetectionError
 from .extrinsics import (CalibrationError, ExtrinsicResult, Observation, SolverConfig, check_against_depth,
-                         sed_baseline, solve_rig, target_depth_points, target_pose)
+                         solve_rig, target_depth_points, target_pose)
 
 
 @dataclass
@@ -43,7 +43,6 @@ class CalibrationConfig:
     min_patch_px: float = 12.0           # shortest patch side in the image to sample it
     patch_inner: float = 0.6             # fraction of the patch (per side) that is averaged
     max_chart_angle_deg: float = 70.0    # chart seen more obliquely than this is not sampled
-    min_colour_views: int = 1
 
 
 @dataclass
@@ -104,9 +103,7 @@ class Calibrator:
         self.patch_pixels: dict[str, list[np.ndarray]] = {c: [] for c in rig.names}
         self.models: dict[str, CameraModel] = {}
         self.views = 0
-        x0, y0 = 0.0, 0.0
-        gw, gh = board.grid_size
-        self._grid_region = (x0, y0, gw, gh)
+        self._grid_region = (0.0, 0.0, *board.grid_size)   # depth is sampled on the ChArUco grid
 
     def add(self, view: int, frames: dict[str, CameraFrame]) -> dict[str, str]:
         """Detect and pose the board in one frame set; returns each camera's outcome in words."""
@@ -175,7 +172,7 @@ class Calibrator:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, int)
         return np.vstack(measured), np.vstack(ref), np.concatenate(patch)
 
-    def solve(self, baseline: bool = False) -> tuple[CalibrationOutcome, ExtrinsicResult | None]:
+    def solve(self) -> CalibrationOutcome:
         """Raises CalibrationError naming the cameras that cannot be calibrated."""
         reference = self.cfg.reference or self.rig.names[0]
         models = {c: self.models.get(c) for c in self.rig.names}
@@ -202,8 +199,7 @@ class Calibrator:
                                   extra={'board': self.board.to_dict(), 'rig': self.rig.name,
                                          'frame_sets': self.views,
                                          'colour_errors': colour_errors})
-        base = sed_baseline(self.observations, models, reference) if baseline else None
-        return CalibrationOutcome(calibration, extrinsics, fits, colour_errors), base
+        return CalibrationOutcome(calibration, extrinsics, fits, colour_errors)
 
 
 def _why_unseen(rejected: dict[int, str]) -> str:

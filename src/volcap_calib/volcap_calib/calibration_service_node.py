@@ -178,10 +178,11 @@ class CalibrationService(Node):
             info_c, info_d = self.infos.get((cam, 'color')), self.infos.get((cam, 'depth'))
             if color is None or info_c is None:
                 continue
+            has_depth = depth is not None and info_d is not None
             try:
                 frames[cam] = CameraFrame(color_to_rgb(color), camera_info_to_model(info_c),
-                                          depth_to_metres(depth) if depth is not None and info_d else None,
-                                          camera_info_to_model(info_d) if depth is not None and info_d else None)
+                                          depth_to_metres(depth) if has_depth else None,
+                                          camera_info_to_model(info_d) if has_depth else None)
             except (MessageConversionError, ValueError) as e:
                 problems.append(f'{cam}: {e}')
         with self.lock:
@@ -215,7 +216,7 @@ class CalibrationService(Node):
         with self.lock:
             calibrator = self.calibrator
             try:
-                outcome, _ = calibrator.solve()
+                outcome = calibrator.solve()
             except CalibrationError as e:
                 response.success = False
                 response.message = f'calibration failed, {self.output} unchanged: {e}'

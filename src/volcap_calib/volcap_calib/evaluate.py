@@ -2,17 +2,16 @@
 with the rig fixed, and the paper's Table 1 colour differences before and after correction."""
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 from volcap_core.calibration import Calibration
 from volcap_core.camera import CameraModel
-from volcap_core.poses import invert, rotation_angle_deg
+from volcap_core.poses import from_rotvec_t, invert, rotation_angle_deg, to_rotvec_t
 
 from .calibrate import Calibrator
 from .colour import ColourModel, component_differences, delta_e2000
-from .extrinsics import Observation, _pose_vec, _vec_pose
+from .extrinsics import Observation, corner_residuals
 
 
 def pose_errors(T_est: dict[str, np.ndarray], T_gt: dict[str, np.ndarray], reference: str) -> dict[str, dict]:
@@ -37,17 +36,11 @@ def rig_reprojection(observations: list[Observation], models: dict[str, CameraMo
     sq: dict[str, list[np.ndarray]] = {c: [] for c in models}
 
     def residuals(x, obs):
-        T_wt = _vec_pose(x)
-        out = []
-        for o in obs:
-            T = invert(T_world_color[o.camera]) @ T_wt
-            m = models[o.camera]
-            proj, _ = cv2.projectPoints(o.detection.object_points, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], m.K, m.D)
-            out.append(proj.reshape(-1, 2) - o.detection.pixels)
-        return out
+        T_wt = from_rotvec_t(x)
+        return [corner_residuals(o.detection, invert(T_world_color[o.camera]) @ T_wt, models[o.camera]) for o in obs]
 
     for obs in by_view.values():
-        start = _pose_vec(T_world_color[obs[0].camera] @ obs[0].T_cam_target)
+        start = to_rotvec_t(T_world_color[obs[0].camera] @ obs[0].T_cam_target)
         sol = least_squares(lambda x: np.concatenate([r.ravel() for r in residuals(x, obs)]), start, method='lm')
         for o, r in zip(obs, residuals(sol.x, obs)):
             sq[o.camera].append(np.sum(r ** 2, axis=1))

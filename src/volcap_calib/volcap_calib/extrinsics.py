@@ -21,7 +21,8 @@ from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from volcap_core.camera import CameraModel
-from volcap_core.poses import invert, make_transform, rotation_angle_deg, transform_points
+from volcap_core.poses import (from_rotvec_t, invert, make_transform, rotation_angle_deg, to_rotvec_t,
+                               transform_points)
 
 from .detect import Detection
 
@@ -105,12 +106,14 @@ def target_pose(detection: Detection, camera: CameraModel) -> tuple[np.ndarray, 
     T = make_transform(cv2.Rodrigues(rvec)[0], tvec)
     if T[2, 3] <= 0:
         raise ValueError('target behind the camera (degenerate pose)')
-    return T, reprojection_rms(obj, px, T, camera)
+    return T, float(np.sqrt(np.mean(np.sum(corner_residuals(detection, T, camera) ** 2, axis=1))))
 
 
-def reprojection_rms(obj: np.ndarray, px: np.ndarray, T_cam_target: np.ndarray, camera: CameraModel) -> float:
-    proj = camera.project(transform_points(T_cam_target, obj))
-    return float(np.sqrt(np.mean(np.sum((proj - px) ** 2, axis=1))))
+def corner_residuals(detection: Detection, T_cam_target: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """(N, 2) projected minus detected corner pixels for the target at ``T_cam_target``."""
+    rvec = cv2.Rodrigues(T_cam_target[:3, :3])[0]
+    proj, _ = cv2.projectPoints(detection.object_points, rvec, T_cam_target[:3, 3], camera.K, camera.D)
+    return proj.reshape(-1, 2) - detection.pixels
 
 
 @lru_cache(maxsize=32)
@@ -129,13 +132,11 @@ def target_depth_points(depth_m: np.ndarray, depth_camera: CameraModel, T_color_
         raise ValueError(f'depth is {depth_m.shape[::-1]}, camera_info says '
                          f'{depth_camera.width}x{depth_camera.height}')
     valid = np.isfinite(depth_m) & (depth_m > 0)
-    pts = _rays(depth_camera)[valid] * depth_m[valid, None]
-    pts = transform_points(T_color_depth, pts.astype(np.float64))
-    local = transform_points(invert(T_cam_target), pts)
+    local = transform_points(invert(T_cam_target) @ T_color_depth, _rays(depth_camera)[valid] * depth_m[valid, None])
     x0, y0, x1, y1 = region
     keep = ((local[:, 0] > x0 + inset) & (local[:, 0] < x1 - inset) & (local[:, 1] > y0 + inset)
             & (local[:, 1] < y1 - inset) & (np.abs(local[:, 2]) < max_offset))
-    return pts[keep]
+    return transform_points(T_cam_target, local[keep])
 
 
 def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -158,9 +159,7 @@ def depth_corners(obs: Observation, camera: CameraModel) -> np.ndarray:
 def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Rigid T minimising sum |T src - dst|^2 (Umeyama without scale)."""
     cs, cd = src.mean(0), dst.mean(0)
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ S @ U.T
+    R = Rotation.align_vectors(dst - cd, src - cs)[0].as_matrix()
     return make_transform(R, cd - R @ cs)
 
 
@@ -204,14 +203,6 @@ def chain_poses(observations: list[Observation], cameras: list[str], reference: 
     return T_cam, T_view, [c for c in cameras if c not in T_cam]
 
 
-def _pose_vec(T: np.ndarray) -> np.ndarray:
-    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
-
-
-def _vec_pose(v: np.ndarray) -> np.ndarray:
-    return make_transform(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:6])
-
-
 def solve_rig(observations: list[Observation], models: dict[str, CameraModel], reference: str,
               cfg: SolverConfig = SolverConfig(), rejected: dict[str, dict[int, str]] | None = None
               ) -> ExtrinsicResult:
@@ -231,7 +222,7 @@ def solve_rig(observations: list[Observation], models: dict[str, CameraModel], r
     views = sorted(T_view0)
     cam_col = {c: 6 * i for i, c in enumerate(free)}
     view_col = {v: 6 * (len(free) + i) for i, v in enumerate(views)}
-    x0 = np.concatenate([_pose_vec(T_cam0[c]) for c in free] + [_pose_vec(T_view0[v]) for v in views])
+    x0 = np.concatenate([to_rotvec_t(T_cam0[c]) for c in free] + [to_rotvec_t(T_view0[v]) for v in views])
     rng = np.random.default_rng(0)
     depth_sets = {}
     if cfg.depth_weight > 0:
@@ -242,18 +233,15 @@ def solve_rig(observations: list[Observation], models: dict[str, CameraModel], r
     depth_scale = np.sqrt(cfg.depth_weight) / cfg.depth_sigma
 
     def unpack(x):
-        T_cam = {reference: np.eye(4)} | {c: _vec_pose(x[cam_col[c]:cam_col[c] + 6]) for c in free}
-        return T_cam, {v: _vec_pose(x[view_col[v]:view_col[v] + 6]) for v in views}
+        T_cam = {reference: np.eye(4)} | {c: from_rotvec_t(x[cam_col[c]:cam_col[c] + 6]) for c in free}
+        return T_cam, {v: from_rotvec_t(x[view_col[v]:view_col[v] + 6]) for v in views}
 
     def residual_parts(x):
         T_cam, T_view = unpack(x)
         reproj, depth = [], []
         for i, o in enumerate(observations):
             T_ct = invert(T_cam[o.camera]) @ T_view[o.view]
-            m = models[o.camera]
-            rvec = cv2.Rodrigues(T_ct[:3, :3])[0]
-            proj, _ = cv2.projectPoints(o.detection.object_points, rvec, T_ct[:3, 3], m.K, m.D)
-            reproj.append(proj.reshape(-1, 2) - o.detection.pixels)
+            reproj.append(corner_residuals(o.detection, T_ct, models[o.camera]))
             if i in depth_sets:
                 depth.append(transform_points(invert(T_ct), depth_sets[i])[:, 2])
         return reproj, depth

@@ -48,6 +48,15 @@ def from_xyz_quat(xyz, quat) -> np.ndarray:
     return make_transform(Rotation.from_quat(quat).as_matrix(), xyz)
 
 
+def to_rotvec_t(T: np.ndarray) -> np.ndarray:
+    """(6,) rotation vector and translation: the pose parameters of least-squares problems."""
+    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+
+
+def from_rotvec_t(v: np.ndarray) -> np.ndarray:
+    return make_transform(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:6])
+
+
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle of the rotation between two rotation matrices, in degrees."""
     cos = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
