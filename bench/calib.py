@@ -1,18 +1,22 @@
 """Calibration stage timings on a synthetic studio bag (8 cameras, colour 1280x720):
-board detection against a bare OpenCV CharucoDetector on the same images, and the solve
-(joint least squares, colour fits) against the paper's SED gradient-descent baseline.
+board detection against a bare OpenCV CharucoDetector on the same images, the solve (joint
+least squares, colour fits) against the paper's SED gradient-descent baseline, and the
+ColorChecker finder on the real photos in ../shared/data/colorchecker against one bare OpenCV
+threshold-and-contours pass over the same photo.
 
     python bench/calib.py BAG      (a bag from `volcap synth --board-poses 40 --frames 0`)
 """
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from volcap_bringup.calib_cli import calibrator_from_bag
-from volcap_calib.board import BoardConfig
+from volcap_calib.board import BoardConfig, reference_srgb8
 from volcap_calib.calibrate import CalibrationConfig, CameraFrame, Calibrator
+from volcap_calib.chart import find_colour_checker
+from volcap_calib.colour import fit_camera_colour
 from volcap_calib.extrinsics import sed_baseline
 from volcap_core.topics import CALIBRATION_PHASE
 from volcap_driver.bag_io import BagReader
@@ -48,6 +52,26 @@ def main(bag: str) -> None:
           f'({t_add / t_bare:.2f}x bare detection)')
     print(f'solve (joint least squares + colour leave-one-out): {t_solve:7.1f} s')
     print(f'paper SED gradient-descent baseline:               {t_base:7.1f} s')
+    t0 = time.perf_counter()
+    illumination = calibrator.illumination()
+    for c in rig.names:
+        fit_camera_colour(*calibrator.colour_samples(c, illumination))
+    print(f'  of the solve, colour (illumination, 6 models x leave-one-patch-out, Lab refinement, 8 cameras): '
+          f'{time.perf_counter() - t0:5.1f} s')
+    charts = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'colorchecker'
+    reference = reference_srgb8() / 255.0
+    for photo in sorted(charts.glob('*.png')):
+        image = cv2.cvtColor(cv2.imread(str(photo)), cv2.COLOR_BGR2RGB)
+        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        t0 = time.perf_counter()
+        cv2.findContours(cv2.adaptiveThreshold(gray, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY, 61, -5),
+                         cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        t_pass = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        find_colour_checker(image, reference)
+        t_find = time.perf_counter() - t0
+        print(f'ColorChecker finder, {photo.name} ({image.shape[1]}x{image.shape[0]}): {t_find * 1000:6.1f} ms '
+              f'({t_find / t_pass:.0f}x one bare threshold + contours pass, {t_pass * 1000:.1f} ms)')
 
 
 if __name__ == '__main__':

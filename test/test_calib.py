@@ -10,6 +10,7 @@ import yaml
 
 from volcap_calib.board import BoardConfig, reference_srgb8, write_board
 from volcap_calib.calibrate import CalibrationConfig, CameraFrame, Calibrator
+from volcap_calib.chart import ChartNotFound, find_colour_checker
 from volcap_calib.colour import (ColourModel, component_differences, delta_e2000, fit_camera_colour, fit_model,
                                  srgb_to_linear, linear_to_srgb)
 from volcap_calib.detect import BoardDetector, Detection, DetectionError, detect_chessboard
@@ -218,6 +219,16 @@ def test_colour_models_fit_a_camera_response_and_leave_one_out_picks_a_matrix():
     assert corrected.shape == image.shape and corrected.dtype == np.uint8
     assert np.abs(corrected / 255.0 - fit.model.apply(image / 255.0)).max() <= 0.5 / 255 + 1e-9
     assert ColourModel.from_dict(fit.model.to_dict()).to_dict() == fit.model.to_dict()
+    # What calibration.yaml stores (ColourFit.to_dict) rebuilds the same model, exponents included.
+    gamma = fit_camera_colour(measured, ref, patch, method='gamma_3x3')
+    stored = ColourModel.from_dict(gamma.to_dict())
+    assert stored.exponents == gamma.model.exponents
+    assert np.allclose(stored.apply(measured), gamma.model.apply(measured))
+    # The CIELAB refinement does not lose to the linear-RGB least squares it starts from.
+    for method in ('matrix_3x3', 'gamma_3x3'):
+        linear_only = fit_model(method, measured, ref, perceptual=False)
+        refined = fit_model(method, measured, ref)
+        assert delta_e2000(refined.apply(measured), ref).mean() < delta_e2000(linear_only.apply(measured), ref).mean()
 
 
 def test_colour_fit_refuses_bad_samples():
@@ -288,9 +299,10 @@ def test_board_prints_at_true_scale(tmp_path):
 def test_cli_calibrate_and_eval(calib_bag, calib_bag_blind_camera, tmp_path):
     from volcap_bringup.cli import main
     out = tmp_path / 'calibration.yaml'
-    assert main(['calibrate', str(calib_bag), '--out', str(out), '--quiet']) == 0
+    assert main(['calibrate', str(calib_bag), '--out', str(out), '--quiet', '--icp']) == 0
     report = json.loads((tmp_path / 'calibration_report.json').read_text())
     assert set(report['cameras']) == {'cam0', 'cam1'}
+    assert 'no capture frame set 0' in report['icp']['skipped']   # board-only bag: board poses kept
     assert (tmp_path / 'calibration_poses.png').exists() and (tmp_path / 'calibration_colour.png').exists()
     before = out.read_text()
     assert main(['calibrate', str(calib_bag_blind_camera), '--out', str(out), '--quiet']) == 1
@@ -303,3 +315,84 @@ def test_cli_calibrate_and_eval(calib_bag, calib_bag_blind_camera, tmp_path):
     assert set(doc['cameras']['cam1']) >= {'rot_err_deg', 'trans_err_mm', 'reproj_rms_px'}
     assert set(doc['colour']['cam0']['after']) == {'R', 'G', 'B', 'I'}
     assert 'patch_de2000_after' in doc['colour']['cam0']
+
+
+@pytest.mark.parametrize('photo', ['chair_warm.png', 'passport_warm.png'])
+def test_real_colorchecker_photos_are_found_and_corrected(shared_data, photo):
+    image = cv2.cvtColor(cv2.imread(str(shared_data / 'colorchecker' / photo)), cv2.COLOR_BGR2RGB)
+    reference = reference_srgb8() / 255.0
+    chart = find_colour_checker(image, reference)
+    # The neutral row runs white -> black in reference order, whatever the chart's rotation
+    # (the Passport's chart is turned 90 degrees and shares the photo with another page).
+    grey = chart.colours[18:24].mean(axis=1)
+    assert np.all(np.diff(grey) < 0)
+    fit = fit_camera_colour(chart.colours, reference, np.arange(24))
+    assert fit.de2000_before > 10.0
+    assert fit.de2000_after <= 3.0
+    assert fit.loo_de2000[fit.model.method] <= 3.0   # also on patches the model never saw
+
+
+def test_chart_finder_reads_a_turned_and_tilted_chart_exactly_and_refuses_other_squares(shared_data):
+    reference = reference_srgb8() / 255.0
+    board = BoardConfig.from_yaml()
+    image = board.render(1500.0)   # the volcap board: ChArUco squares beside the chart
+    h, w = image.shape[:2]
+    corners = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
+    tilted = cv2.warpPerspective(image, cv2.getPerspectiveTransform(
+        corners, np.float32([[w * 0.1, h * 0.05], [w * 0.95, 0], [w * 0.8, h], [0, h * 0.9]])), (w, h),
+        borderValue=(90, 90, 90))
+    for turned in (tilted, cv2.rotate(tilted, cv2.ROTATE_90_CLOCKWISE), cv2.rotate(tilted, cv2.ROTATE_180)):
+        chart = find_colour_checker(turned, reference)
+        assert delta_e2000(chart.colours, reference).max() < 0.5
+    chessboard = cv2.cvtColor(cv2.imread(str(shared_data / 'stereo_chessboard' / 'left04.jpg')), cv2.COLOR_BGR2RGB)
+    with pytest.raises(ChartNotFound, match='not a ColorChecker'):
+        find_colour_checker(chessboard, reference)
+    with pytest.raises(ChartNotFound, match='square patches'):
+        find_colour_checker(np.full((200, 300, 3), 128, np.uint8), reference)
+
+
+def test_cli_eval_chart(shared_data, tmp_path):
+    from volcap_bringup.cli import main
+    photo = shared_data / 'colorchecker' / 'chair_warm.png'
+    out = tmp_path / 'chart.json'
+    assert main(['eval', 'chart', str(photo), '--json', str(out), '--figures', str(tmp_path)]) == 0
+    doc = json.loads(out.read_text())['photos']['chair_warm']
+    assert doc['de2000_after'] < doc['de2000_before'] and len(doc['patch_de2000_after']) == 24
+    assert set(doc['table1_after']['signed']) == {'R', 'G', 'B', 'I'}
+    assert (tmp_path / 'chair_warm_chart.png').stat().st_size > 10_000
+    broken = tmp_path / 'broken.png'
+    broken.write_bytes(b'\x89PNG\r\n\x1a\n truncated')
+    assert main(['eval', 'chart', str(broken), '--json', str(out)]) == 1
+    assert json.loads(out.read_text())['failed'] == [str(broken)]
+
+
+def test_icp_refinement_pulls_perturbed_cameras_onto_the_subject_and_keeps_good_ones(shared_data):
+    import open3d as o3d
+    from volcap_calib.icp import IcpConfig, refine_with_icp
+    from volcap_calib.evaluate import pose_errors
+    mesh = o3d.io.read_triangle_mesh(str(shared_data / 'meshes' / 'bunny.ply'))
+    mesh.scale(0.8 / np.ptp(np.asarray(mesh.vertices), axis=0).max(), center=mesh.get_center())
+    mesh.translate(-mesh.get_center())
+    o3d.utility.random.seed(4)
+    rng = np.random.default_rng(4)
+    surface = np.asarray(mesh.sample_points_uniformly(60_000).points)   # the subject, and a floor
+    surface = np.vstack([surface, np.column_stack([rng.uniform(-1, 1, (20_000, 2)), np.full(20_000, -0.5)])])
+    T_gt = {f'cam{i}': look_at(np.array([2.2 * np.cos(a), 2.2 * np.sin(a), 0.6]), np.zeros(3))
+            for i, a in enumerate(np.radians([0, 90, 180, 270]))}
+    points = {c: transform_points(invert(T), surface) + rng.normal(0, 0.001, surface.shape) for c, T in T_gt.items()}
+    T_start = {c: T if c == 'cam0' else perturb(T, rng.normal(0, 0.4, 3), rng.normal(0, 0.006, 3))
+               for c, T in T_gt.items()}
+    start = pose_errors(T_start, T_gt, 'cam0')
+    cfg = IcpConfig(voxel=0.01, max_distance=0.03)
+    T, reports = refine_with_icp(T_start, points, 'cam0', cfg)
+    after = pose_errors(T, T_gt, 'cam0')
+    assert set(reports) == {'cam1', 'cam2', 'cam3'} and all(r.accepted for r in reports.values())
+    for c in reports:
+        assert after[c]['rot_err_deg'] < 0.1 < start[c]['rot_err_deg'] or after[c]['rot_err_deg'] < start[c]['rot_err_deg'] / 3
+        assert after[c]['trans_err_mm'] < 2.0
+    # Already aligned: no step clears the minimum gain, so nothing moves.
+    T_same, reports = refine_with_icp(T_gt, points, 'cam0', cfg)
+    assert not any(r.accepted for r in reports.values())
+    assert all(np.array_equal(T_same[c], T_gt[c]) for c in T_gt)
+    with pytest.raises(ValueError, match='no depth points'):
+        refine_with_icp(T_gt, {'cam0': points['cam0']}, 'cam0', cfg)

@@ -65,6 +65,7 @@ def cmd_calibrate(args) -> int:
         print(f'calibration failed, {args.out} left as it was: {e}')
         return 1
     calibration = outcome.calibration
+    icp = _icp_refinement(args.bag, calibration, args.icp_frame) if args.icp else None
     calibration.save(args.out)
     out = Path(args.out)
     report_dir = Path(args.report) if args.report else out.parent
@@ -73,6 +74,8 @@ def cmd_calibrate(args) -> int:
     report = {'calibration': str(out), 'reference': calibration.reference, 'frame_sets': calibrator.views,
               'cameras': {c: outcome.extrinsics.cameras[c].to_dict() for c in calibration.cameras},
               'colour': colour, 'colour_average': colour_summary(colour), 'colour_errors': outcome.colour_errors}
+    if icp is not None:
+        report['icp'] = icp
     json_path = atomic_write(report_dir / f'{stem}_report.json',
                              lambda f: f.write(json.dumps(report, indent=2)), binary=False)
     poses_figure(report_dir / f'{stem}_poses.png', outcome.extrinsics.T_world_color, outcome.extrinsics.T_world_target,
@@ -89,7 +92,40 @@ def cmd_calibrate(args) -> int:
         print(f'  {c}: {rep.views:2d} views  reproj {rep.reproj_rms_px:.3f} px  depth {depth}{col_txt}')
     for c, why in outcome.colour_errors.items():
         print(f'  {c}: no colour model: {why}')
+    for c, rep in (icp or {}).get('cameras', {}).items():
+        print(f'  {c}: ICP {"moved" if rep["accepted"] else "kept  "} {rep["rotation_deg"]:.3f} deg '
+              f'{rep["translation_mm"]:5.2f} mm, inlier RMSE {rep["rmse_before_mm"]:.2f} -> {rep["rmse_after_mm"]:.2f} mm'
+              + (f' ({rep["reason"]})' if rep['reason'] else ''))
     return 0
+
+
+def _icp_refinement(bag, calibration, frame: int) -> dict:
+    """ICP of the subject's depth in one capture frame set of the bag; updates ``calibration``."""
+    from volcap_calib.extrinsics import depth_points
+    from volcap_calib.icp import refine_with_icp
+    from volcap_core.topics import CAPTURE
+    from volcap_driver.bag_io import BagReader
+    from volcap_driver.frames import frame_sets, read_rig
+    with BagReader(bag) as reader:
+        rig = read_rig(reader)
+    sets = frame_sets(bag, phases=(CAPTURE,))
+    try:
+        chosen = next((fs for n, fs in enumerate(sets) if n == frame), None)
+    finally:
+        sets.close()   # closes the bag
+    if chosen is None:
+        print(f'ICP skipped: {bag} has no capture frame set {frame}; the board solution is kept')
+        return {'skipped': f'no capture frame set {frame}'}
+    if chosen.missing:
+        print(f'ICP skipped: capture frame set {frame} lacks {chosen.missing}; the board solution is kept')
+        return {'skipped': f'capture frame set {frame} lacks {chosen.missing}'}
+    points = {c: depth_points(f.depth, f.depth_model, rig.camera(c).T_color_depth) for c, f in chosen.cameras.items()}
+    T, reports = refine_with_icp({c: cam.T_world_color for c, cam in calibration.cameras.items()}, points,
+                                 calibration.reference)
+    for c, cam in calibration.cameras.items():
+        cam.T_world_color = T[c]
+    calibration.method += '+icp'
+    return {'frame_set': chosen.index, 'cameras': {c: r.to_dict() for c, r in reports.items()}}
 
 
 def cmd_eval_calib(args) -> int:
@@ -141,6 +177,54 @@ def cmd_eval_calib(args) -> int:
     return 0
 
 
+def cmd_eval_chart(args) -> int:
+    import cv2
+    from volcap_calib.board import reference_srgb8
+    from volcap_calib.chart import ChartNotFound, find_colour_checker
+    from volcap_calib.colour import METHODS, component_differences, delta_e2000, fit_camera_colour
+    from volcap_calib.report import chart_figure
+    reference = reference_srgb8() / 255.0
+    result, failed = {}, []
+    for photo in args.photos:
+        bgr = cv2.imread(photo, cv2.IMREAD_COLOR)
+        if bgr is None:
+            print(f'{photo}: not a readable image')
+            failed.append(photo)
+            continue
+        image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        try:
+            chart = find_colour_checker(image, reference)
+        except ChartNotFound as e:
+            print(f'{photo}: no ColorChecker: {e}')
+            failed.append(photo)
+            continue
+        fit = fit_camera_colour(chart.colours, reference, np.arange(24), method=args.method or None)
+        corrected = fit.model.apply(chart.colours)
+        de_before, de_after = delta_e2000(chart.colours, reference), delta_e2000(corrected, reference)
+        name = Path(photo).stem
+        result[name] = {'photo': str(photo), 'patches_found': chart.candidates, 'method': fit.model.method,
+                        'model': fit.model.to_dict(), 'de2000_before': float(de_before.mean()),
+                        'de2000_after': float(de_after.mean()), 'de2000_after_loo': fit.loo_de2000[fit.model.method],
+                        'loo_de2000': fit.loo_de2000, 'table1_before': component_differences(chart.colours, reference),
+                        'table1_after': component_differences(corrected, reference),
+                        'patch_de2000_before': [float(v) for v in de_before],
+                        'patch_de2000_after': [float(v) for v in de_after]}
+        print(f'{name}: chart found ({chart.candidates} patches detected, 24 sampled); {fit.model.method}: '
+              f'CIEDE2000 {de_before.mean():.2f} -> {de_after.mean():.2f} (leave-one-patch-out '
+              f'{fit.loo_de2000[fit.model.method]:.2f}, max {de_after.max():.2f})')
+        print('  leave-one-patch-out per model: ' + ', '.join(f'{m} {fit.loo_de2000[m]:.2f}'
+                                                             for m in METHODS if m in fit.loo_de2000))
+        if args.figures:
+            png = chart_figure(Path(args.figures) / f'{name}_chart.png', image, chart.centres, chart.colours,
+                               corrected, reference, de_before, de_after, f'{name}: {fit.model.method}')
+            print(f'  figure {png}')
+    if args.json:
+        atomic_write(args.json, lambda f: f.write(json.dumps({'photos': result, 'failed': failed}, indent=2)),
+                     binary=False)
+        print(f'wrote {args.json}')
+    return 1 if failed else 0
+
+
 def add_parsers(sub, eval_sub) -> None:
     b = sub.add_parser('board', help='print the calibration board (PNG or PDF at true scale)')
     b.add_argument('--out', required=True, help='board.png or board.pdf')
@@ -157,6 +241,9 @@ def add_parsers(sub, eval_sub) -> None:
     c.add_argument('--colour-method', default='', help='force a colour model instead of the leave-one-out choice')
     c.add_argument('--no-depth', action='store_true', help='reprojection only (no depth-to-plane residuals)')
     c.add_argument('--all-frames', action='store_true', help='use every frame set, not only the calibration phase')
+    c.add_argument('--icp', action='store_true',
+                   help='refine the poses by ICP of the subject\'s depth in a capture frame set of the bag')
+    c.add_argument('--icp-frame', type=int, default=0, help='which capture frame set ICP uses (default: the first)')
     c.add_argument('--quiet', action='store_true')
     c.set_defaults(func=cmd_calibrate)
 
@@ -168,3 +255,10 @@ def add_parsers(sub, eval_sub) -> None:
     e.add_argument('--board', help='board YAML (default: the volcap board)')
     e.add_argument('--quiet', action='store_true')
     e.set_defaults(func=cmd_eval_calib)
+
+    ch = eval_sub.add_parser('chart', help='find a ColorChecker Classic in photos and correct it to the reference')
+    ch.add_argument('photos', nargs='+')
+    ch.add_argument('--method', default='', help='force a colour model instead of the leave-one-out choice')
+    ch.add_argument('--json', help='write the report here')
+    ch.add_argument('--figures', help='write one PNG per photo into this folder')
+    ch.set_defaults(func=cmd_eval_chart)

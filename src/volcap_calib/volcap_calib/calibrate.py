@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from volcap_core.calibration import Calibration, CameraCalibration
@@ -19,6 +18,7 @@ from volcap_core.poses import transform_points
 from volcap_core.rig import Rig
 
 from .board import BoardConfig, reference_srgb8
+from .chart import quad_mean
 from .colour import METHODS, ColourFit, fit_camera_colour, illuminated_reference, view_illumination
 from .detect import BoardDetector, DetectionError
 from .extrinsics import (CalibrationError, ExtrinsicResult, Observation, SolverConfig, check_against_depth,
@@ -74,19 +74,12 @@ def patch_colours(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarra
             continue
         px = camera.project(pts_cam)
         side = min(np.linalg.norm(px - np.roll(px, 1, axis=0), axis=1)) / inner
-        h, w = image.shape[:2]
-        if side < min_side_px or px.min() < 0 or px[:, 0].max() > w - 1 or px[:, 1].max() > h - 1:
+        if side < min_side_px:
             continue
-        x0, y0 = np.floor(px.min(0)).astype(int)
-        x1, y1 = np.ceil(px.max(0)).astype(int) + 1
-        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        cv2.fillConvexPoly(mask, np.round(px - (x0, y0)).astype(np.int32), 1)
-        values = image[y0:y1, x0:x1][mask.astype(bool)].astype(np.float64)
-        if len(values) < 9:
+        mean = quad_mean(image, px)
+        if mean is None:
             continue
-        lo, hi = np.percentile(values, [25, 75], axis=0)
-        keep = np.all((values >= lo) & (values <= hi), axis=1)
-        out[p] = (values[keep] if keep.sum() >= 3 else values).mean(axis=0) / 255.0
+        out[p] = mean / 255.0
         centres_px[p] = px.mean(axis=0)
     return out, centres_px
 

@@ -123,16 +123,21 @@ def _rays(camera: CameraModel) -> np.ndarray:
     return rays
 
 
+def depth_points(depth_m: np.ndarray, depth_camera: CameraModel, T_color_depth: np.ndarray) -> np.ndarray:
+    """(N, 3) points of every valid depth pixel, in the colour camera's frame."""
+    if depth_m.shape != (depth_camera.height, depth_camera.width):
+        raise ValueError(f'depth is {depth_m.shape[::-1]}, camera_info says '
+                         f'{depth_camera.width}x{depth_camera.height}')
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    return transform_points(T_color_depth, _rays(depth_camera)[valid] * depth_m[valid, None])
+
+
 def target_depth_points(depth_m: np.ndarray, depth_camera: CameraModel, T_color_depth: np.ndarray,
                         T_cam_target: np.ndarray, region: tuple[float, float, float, float],
                         inset: float = 0.02, max_offset: float = 0.05) -> np.ndarray:
     """Depth points (colour frame) that fall on the target plane inside ``region`` (target
     coordinates x0, y0, x1, y1) shrunk by ``inset``: mixed pixels at the target's border stay out."""
-    if depth_m.shape != (depth_camera.height, depth_camera.width):
-        raise ValueError(f'depth is {depth_m.shape[::-1]}, camera_info says '
-                         f'{depth_camera.width}x{depth_camera.height}')
-    valid = np.isfinite(depth_m) & (depth_m > 0)
-    local = transform_points(invert(T_cam_target) @ T_color_depth, _rays(depth_camera)[valid] * depth_m[valid, None])
+    local = transform_points(invert(T_cam_target), depth_points(depth_m, depth_camera, T_color_depth))
     x0, y0, x1, y1 = region
     keep = ((local[:, 0] > x0 + inset) & (local[:, 0] < x1 - inset) & (local[:, 1] > y0 + inset)
             & (local[:, 1] < y1 - inset) & (np.abs(local[:, 2]) < max_offset))

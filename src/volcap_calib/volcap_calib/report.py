@@ -76,3 +76,35 @@ def colour_figure(path: str | Path, colour: dict[str, dict]) -> Path:
     out = _save(fig, path)
     plt.close(fig)
     return out
+
+
+def chart_figure(path: str | Path, image: np.ndarray, centres: np.ndarray, measured: np.ndarray,
+                 corrected: np.ndarray, reference: np.ndarray, de_before: np.ndarray, de_after: np.ndarray,
+                 title: str) -> Path:
+    """A ColorChecker photo with the found patches numbered, and per patch three stripes
+    (as photographed | corrected | reference) labelled with CIEDE2000 before -> after."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(14, 5), gridspec_kw={'width_ratios': [1.4, 1]})
+    axes[0].imshow(image)
+    for n, (x, y) in enumerate(centres):
+        axes[0].text(x, y, str(n), color='white', ha='center', va='center', fontsize=8,
+                     bbox={'facecolor': 'black', 'alpha': 0.5, 'pad': 1, 'lw': 0})
+    axes[0].set_title(title)
+    axes[0].axis('off')
+    cell_w, cell_h = 13, 15   # three 3-wide stripes with 1-wide gaps; a text line under them
+    swatch = np.ones((4 * cell_h, 6 * cell_w, 3))
+    for n in range(24):
+        r, c = divmod(n, 6)
+        for k, rgb in enumerate((measured[n], corrected[n], reference[n])):
+            x = c * cell_w + 1 + 4 * k
+            swatch[r * cell_h + 1:r * cell_h + 11, x:x + 3] = rgb
+        axes[1].text(c * cell_w + 6, r * cell_h + 11, f'{de_before[n]:.1f}->{de_after[n]:.1f}', ha='center',
+                     va='top', fontsize=7)
+    axes[1].imshow(swatch, interpolation='nearest')
+    axes[1].set_title(f'photo | corrected | reference; CIEDE2000 mean {de_before.mean():.2f} -> {de_after.mean():.2f}')
+    axes[1].axis('off')
+    out = _save(fig, path)
+    plt.close(fig)
+    return out
