@@ -1,4 +1,4 @@
-"""``volcap board``, ``volcap calibrate`` and ``volcap eval calib``."""
+"""``volcap board``, ``volcap calibrate``, ``volcap eval calib`` and ``volcap eval chart``."""
 from __future__ import annotations
 
 import json

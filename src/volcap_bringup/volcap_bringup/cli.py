@@ -6,8 +6,9 @@
     volcap eval depth BAG [--json OUT.json] [--figures DIR] [--frames N]
     volcap eval registration BAG [--out overlay.png] [--json OUT.json]
     volcap board --out board.pdf
-    volcap calibrate BAG --out calibration.yaml
+    volcap calibrate BAG --out calibration.yaml [--icp]
     volcap eval calib calibration.yaml BAG [--json OUT.json]
+    volcap eval chart PHOTO [PHOTO ...] [--json OUT.json] [--figures DIR]
     volcap demo [--out DIR]
 """
 from __future__ import annotations
