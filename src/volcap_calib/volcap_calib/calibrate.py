@@ -54,7 +54,8 @@ class CalibrationOutcome:
 
 
 def patch_colours(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray, board: BoardConfig,
-                  inner: float = 0.6, min_side_px: float = 12.0, max_angle_deg: float = 70.0) -> np.ndarray:
+                  inner: float = 0.6, min_side_px: float = 12.0, max_angle_deg: float = 70.0
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """(24, 3) sRGB in [0, 1] of each chart patch, robust (inter-quartile) mean of its central
     part, and (24, 2) the patch centres in the image; NaN rows for patches out of view, too
     small, or seen too obliquely."""

@@ -88,26 +88,22 @@ def _lattice_from_seed(centres: np.ndarray, sides: np.ndarray, i: int, j: int, k
     basis = np.column_stack([a, b])
     if abs(np.linalg.det(basis)) < 1e-6:
         return None
-    uv = np.linalg.solve(basis, (centres - origin).T).T
-    H = None
-    for _ in range(3):
-        grid = np.round(uv)
-        pitch = min(np.linalg.norm(a), np.linalg.norm(b))
+    pitch = min(np.linalg.norm(a), np.linalg.norm(b))
+    similar_size = np.abs(sides / np.median(sides[[i, j, k]]) - 1.0) < 0.35
+    uv, H = np.linalg.solve(basis, (centres - origin).T).T, None
+    for refit in (True, True, True, False):
+        grid = np.round(uv).astype(int)
         predicted = (origin + grid @ basis.T) if H is None else \
             cv2.perspectiveTransform(grid[None].astype(np.float64), H)[0]
-        inlier = (np.linalg.norm(predicted - centres, axis=1) < 0.2 * pitch) & \
-                 (np.abs(sides / np.median(sides[[i, j, k]]) - 1.0) < 0.35)
+        inlier = (np.linalg.norm(predicted - centres, axis=1) < 0.2 * pitch) & similar_size
         if inlier.sum() < 6:
             return None
-        H, _ = cv2.findHomography(grid[inlier], centres[inlier], 0)
+        if not refit:
+            return grid, inlier, H
+        H, _ = cv2.findHomography(grid[inlier].astype(np.float64), centres[inlier], 0)
         if H is None:
             return None
         uv = cv2.perspectiveTransform(centres[None].astype(np.float64), np.linalg.inv(H))[0]
-    grid = np.round(uv).astype(int)
-    predicted = cv2.perspectiveTransform(grid[None].astype(np.float64), H)[0]
-    inlier = (np.linalg.norm(predicted - centres, axis=1) < 0.2 * pitch) & \
-             (np.abs(sides / np.median(sides[[i, j, k]]) - 1.0) < 0.35)
-    return grid, inlier, H
 
 
 def _best_window(grid: np.ndarray, inlier: np.ndarray):

@@ -120,7 +120,7 @@ def refine_with_icp(T_world_color: dict[str, np.ndarray], points_color: dict[str
         moved = not np.allclose(T[c], T_world_color[c])
         reason = '' if moved else (f'fitness {after.fitness:.2f} < {cfg.min_fitness}' if after.fitness < cfg.min_fitness
                                    else 'no correction that is small and improves the alignment')
-        reports[c] = IcpCameraReport(rmse_before.get(c, after.inlier_rmse) * 1000, after.inlier_rmse * 1000,
+        reports[c] = IcpCameraReport(rmse_before[c] * 1000, after.inlier_rmse * 1000,
                                      after.fitness, rotation_angle_deg(T[c][:3, :3], T_world_color[c][:3, :3]),
                                      float(np.linalg.norm(T[c][:3, 3] - T_world_color[c][:3, 3]) * 1000), moved,
                                      reason)
