@@ -4,7 +4,8 @@
 
 Listens to every camera of the rig (``/volcap/rig``; ``camN/color/image_raw``,
 ``camN/color/camera_info``, ``camN/depth/image_raw``, ``camN/depth/camera_info``) while the
-board is moved, detecting it in a worker thread (a bounded drop-oldest queue keeps the
+board is moved (reliable subscriptions: a board view lost in transport is lost accuracy),
+detecting it in a worker thread (a bounded drop-oldest queue keeps the
 subscriptions free). ``volcap/calibrate`` (std_srvs/Trigger) solves with every view gathered so
 far, writes ``output`` atomically and publishes the result latched on ``volcap/calibration``
 (YAML) and ``volcap/camera_poses`` (PoseArray, world = reference colour frame). On failure
@@ -85,10 +86,10 @@ class CalibrationService(Node):
         for cam in self.cameras:
             for stream, rel in STREAMS.items():
                 self.create_subscription(Image, topics.camera_topic(cam, rel),
-                                         lambda m, c=cam, s=stream: self._on_image(m, c, s), qos.SENSOR)
+                                         lambda m, c=cam, s=stream: self._on_image(m, c, s), qos.EVERY_FRAME)
             for stream, rel in (('color', topics.COLOR_INFO), ('depth', topics.DEPTH_INFO)):
                 self.create_subscription(CameraInfo, topics.camera_topic(cam, rel),
-                                         lambda m, c=cam, s=stream: self.infos.__setitem__((c, s), m), qos.SENSOR)
+                                         lambda m, c=cam, s=stream: self.infos.__setitem__((c, s), m), qos.EVERY_FRAME)
         self.create_timer(1.0, self._report)
         self.create_timer(0.2, lambda: self._enqueue(self.sync.poll(time.monotonic_ns())))
         self.worker = threading.Thread(target=self._work, name='board-detection', daemon=True)
