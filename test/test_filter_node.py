@@ -1,6 +1,5 @@
 """depth_filter in its own process: a replayed studio bag in, clean depth and points out on
 every camera; bad frames are reported on diagnostics and the node keeps going."""
-import time
 
 import numpy as np
 import pytest
@@ -15,7 +14,7 @@ from volcap_core.conversions import (camera_model_to_info, image_to_numpy, numpy
 from volcap_driver.frames import frame_sets
 from volcap_driver.synth.session import GroundTruth
 
-from test_nodes import Probe
+from test_nodes import Probe, play
 
 pytestmark = pytest.mark.ros
 
@@ -30,10 +29,8 @@ def test_filter_nodes_clean_a_replayed_bag_on_every_camera(studio_bag, ros_conte
             procs.append(start_node('volcap_filter', 'depth_filter', {}, namespace=c))
         played = [f'{c}/{t}' for c in cams for t in (topics.COLOR_IMAGE, topics.COLOR_INFO, topics.DEPTH_IMAGE,
                                                       topics.DEPTH_INFO)] + [topics.RIG, topics.PHASE]
-        procs.append(start_node('volcap_driver', 'bag_player', {'bag': str(studio_bag), 'wait_for_subscribers': 60.0,
-                                                                'topics': played, 'rate': 0.5}))
-        assert probe.spin_until(lambda: all(probe.got[t] for t, _, _ in outputs), timeout=150), \
-            f'no output on {[t for t, _, _ in outputs if not probe.got[t]]}'
+        play(procs, studio_bag, wait_for_subscribers=60.0, topics=played, rate=0.5)
+        probe.assert_all_arrive([t for t, _, _ in outputs], timeout=150)
     finally:
         probe.close()
     for c in cams:

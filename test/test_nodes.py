@@ -45,6 +45,10 @@ class Probe:
                 return True
         return False
 
+    def assert_all_arrive(self, topics, timeout):
+        assert self.spin_until(lambda: all(self.got[t] for t in topics), timeout=timeout), \
+            f'no output on {[t for t in topics if not self.got[t]]}'
+
     def close(self):
         self.executor.shutdown()
         self.node.destroy_node()

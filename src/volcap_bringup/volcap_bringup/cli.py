@@ -9,6 +9,8 @@
     volcap calibrate BAG --out calibration.yaml [--icp]
     volcap eval calib calibration.yaml BAG [--json OUT.json]
     volcap eval chart PHOTO [PHOTO ...] [--json OUT.json] [--figures DIR]
+    volcap eval colour BAG --calibration calibration.yaml [--json OUT.json] [--figures DIR]
+    volcap colour-fit BAG --calibration calibration.yaml --out calibration_colour.yaml
     volcap demo [--out DIR]
 """
 from __future__ import annotations
@@ -21,7 +23,7 @@ from pathlib import Path
 
 from volcap_core import transport
 
-from . import calib_cli
+from . import calib_cli, colour_cli
 
 
 def cmd_synth(args) -> int:
@@ -205,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     er.set_defaults(func=cmd_eval_registration)
 
     calib_cli.add_parsers(sub, esub)
+    colour_cli.add_parsers(sub, esub)
 
     d = sub.add_parser('demo', help='the pipeline end to end on generated data')
     d.add_argument('--out', default='demo_out')

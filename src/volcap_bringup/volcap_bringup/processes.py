@@ -14,6 +14,7 @@ NODES = {
     ('volcap_driver', 'recorder'): 'volcap_driver.recorder_node',
     ('volcap_filter', 'depth_filter'): 'volcap_filter.depth_filter_node',
     ('volcap_calib', 'calibration_service'): 'volcap_calib.calibration_service_node',
+    ('volcap_color', 'color_corrector'): 'volcap_color.color_corrector_node',
 }
 
 

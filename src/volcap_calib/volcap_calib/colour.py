@@ -65,15 +65,22 @@ class ColourModel:
     """corrected = features(camera colour) @ matrix.T (linear RGB), or the paper's diagonal on sRGB.
 
     ``gamma_3x3`` raises each linearised channel to its own exponent first: a camera whose tone
-    curve is not quite sRGB (gamma 2.0-2.4) is then linear again before the matrix."""
+    curve is not quite sRGB (gamma 2.0-2.4) is then linear again before the matrix. ``post``, a
+    3x4 affine map applied to the corrected linear RGB, is the harmonisation a chart-free fit
+    adds on top of a chart model (volcap_color)."""
     method: str
     matrix: np.ndarray   # (3, K)
     exponents: tuple[float, float, float] | None = None   # gamma_3x3 only
+    post: np.ndarray | None = None                         # (3, 4), not for the paper's diagonal
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f'unknown colour model {self.method!r}; choose from {METHODS}')
         self.matrix = np.asarray(self.matrix, dtype=np.float64)
+        if self.post is not None:
+            self.post = np.asarray(self.post, dtype=np.float64)
+            if self.post.shape != (3, 4) or self.method == 'paper_diagonal':
+                raise ValueError('post must be a 3x4 affine map on a linear-RGB model')
 
     def apply(self, rgb: np.ndarray) -> np.ndarray:
         """sRGB (..., 3) in [0, 1] -> corrected sRGB in [0, 1]."""
@@ -84,7 +91,8 @@ class ColourModel:
 
     def apply_linear(self, linear: np.ndarray) -> np.ndarray:
         """Linear camera RGB -> corrected linear RGB (unclipped); not for the paper's diagonal."""
-        return _features(self.method, linear, self.exponents) @ self.matrix.T
+        out = _features(self.method, linear, self.exponents) @ self.matrix.T
+        return out if self.post is None else out @ self.post[:, :3].T + self.post[:, 3]
 
     def apply_image(self, image: np.ndarray) -> np.ndarray:
         """uint8 RGB image -> corrected uint8 RGB image (a 256^3 table would be the live form)."""
@@ -99,13 +107,16 @@ class ColourModel:
         d = {'method': self.method, 'matrix': [[float(v) for v in row] for row in self.matrix]}
         if self.exponents is not None:
             d['exponents'] = [float(v) for v in self.exponents]
+        if self.post is not None:
+            d['post'] = [[float(v) for v in row] for row in self.post]
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> 'ColourModel':
-        exponents = d.get('exponents')
+        exponents, post = d.get('exponents'), d.get('post')
         return cls(d['method'], np.asarray(d['matrix'], dtype=np.float64),
-                   tuple(float(v) for v in exponents) if exponents is not None else None)
+                   tuple(float(v) for v in exponents) if exponents is not None else None,
+                   np.asarray(post, dtype=np.float64) if post is not None else None)
 
 
 def _linear_fit(method: str, measured: np.ndarray, reference: np.ndarray) -> ColourModel:

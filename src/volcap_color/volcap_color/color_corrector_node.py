@@ -1,0 +1,105 @@
+"""color_corrector: one camera's colour model from the calibration, applied at full rate.
+
+    ros2 run volcap_color color_corrector --ros-args -r __ns:=/cam0
+
+Subscribes ``color/image_raw`` (rgb8, bgr8, rgba8 or bgra8) and the latched
+``/volcap/calibration``; publishes ``color/image_corrected`` (rgb8, same size, same header). A new
+calibration is picked up as it is published, without a restart. Until a calibration with a
+colour model for this camera arrives, images are passed through unchanged (``passthrough``,
+default) or dropped; either way ``/volcap/diagnostics`` says so.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import yaml
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+
+from volcap_calib.colour import ColourModel
+from volcap_core import qos, topics
+from volcap_core.calibration import Calibration
+from volcap_core.conversions import MessageConversionError, color_to_rgb, numpy_to_image, stamp_to_ns
+from volcap_core.ros import Diagnostics, declare, run_node
+
+from .apply import ImageCorrector
+
+
+class ColorCorrector(Node):
+    def __init__(self):
+        super().__init__('color_corrector')
+        ns_camera = self.get_namespace().strip('/').split('/')[-1]
+        self.camera = declare(self, 'camera', ns_camera or 'cam0', 'camera name in the calibration', read_only=True)
+        self.passthrough = declare(self, 'passthrough', True,
+                                   'publish uncorrected images while there is no colour model (false: drop them)')
+        self.diagnostics = Diagnostics(self, f'colour corrector {self.camera}')
+        self.corrector: ImageCorrector | None = None
+        self._buffer: np.ndarray | None = None
+        self.model_text = 'none'
+        self.corrected = self.passed = self.skipped = 0
+        self.ms: list[float] = []
+        self.pub = self.create_publisher(Image, topics.COLOR_CORRECTED, qos.DRIVER)
+        self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
+        self.create_subscription(Image, topics.COLOR_IMAGE, self._on_image, qos.SENSOR)
+        self.create_timer(1.0, self._report)
+        self.get_logger().info(f'color_corrector started for {self.camera}')
+
+    def _on_calibration(self, msg: String) -> None:
+        try:
+            calibration = Calibration.from_yaml(msg.data)
+            cam = calibration.cameras.get(self.camera)
+            if cam is None:
+                raise ValueError(f'the calibration has no camera {self.camera!r} '
+                                 f'(it has {", ".join(calibration.cameras)})')
+            if cam.colour is None:
+                raise ValueError(f'the calibration has no colour model for {self.camera}')
+            model = ColourModel.from_dict(cam.colour)
+            corrector = ImageCorrector(model)
+        except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
+            self.diagnostics.report('warn', f'calibration not used, keeping {self.model_text}: {e}')
+            return
+        self.corrector = corrector
+        self.model_text = f'{model.method}{" + harmonisation" if model.post is not None else ""} ({corrector.kind})'
+        self.get_logger().info(f'{self.camera}: colour model {self.model_text}')
+
+    def _on_image(self, msg: Image) -> None:
+        try:
+            rgb = color_to_rgb(msg)
+        except (MessageConversionError, ValueError) as e:
+            self.skipped += 1
+            self.diagnostics.report('error', f'{self.camera}: image skipped: {e}')
+            return
+        if self.corrector is None:
+            if not self.passthrough:
+                return
+            out = rgb
+            self.passed += 1
+        else:
+            t0 = time.perf_counter()
+            out = self._buffer = self.corrector(rgb, self._buffer)   # published as a copy, so reusable
+            self.ms.append((time.perf_counter() - t0) * 1e3)
+            self.corrected += 1
+        self.pub.publish(numpy_to_image(out, 'rgb8', stamp_to_ns(msg.header.stamp), msg.header.frame_id))
+
+    def _report(self) -> None:
+        if self.corrector is None:
+            self.diagnostics.report('warn', f'{self.camera}: no colour model yet; images are '
+                                            f'{"passed through" if self.passthrough else "dropped"}',
+                                    passed=self.passed, skipped=self.skipped)
+            return
+        ms = float(np.median(self.ms[-100:])) if self.ms else 0.0
+        self.diagnostics.report('ok', f'{self.camera}: {self.corrected} frames corrected with {self.model_text}',
+                                corrected=self.corrected, passed=self.passed, skipped=self.skipped,
+                                median_ms=round(ms, 2))
+        self.ms = self.ms[-100:]
+
+
+def main(args=None):
+    sys.exit(run_node(ColorCorrector, args))
+
+
+if __name__ == '__main__':
+    main()
