@@ -103,17 +103,18 @@ def cmd_demo(args) -> int:
 
     out = Path(args.out)
     bag = out / 'studio'
-    cfg = SynthConfig(cameras=8, frames=args.frames, board_poses=8, background_frames=3, seed=args.seed)
+    # 16 board poses: enough shared views to chain the four stands for the calibration step
+    cfg = SynthConfig(cameras=8, frames=args.frames, board_poses=16, background_frames=3, seed=args.seed)
     if bag.exists() and _same_config(bag, cfg):
-        print(f'[1/2] reusing the studio bag {bag}')
+        print(f'[1/4] reusing the studio bag {bag}')
     else:
-        print(f'[1/2] rendering a synthetic 8-camera studio session into {bag}')
+        print(f'[1/4] rendering a synthetic 8-camera studio session into {bag}')
         out.mkdir(parents=True, exist_ok=True)
         synthesize(bag, cfg, overwrite=True)
     with BagReader(bag) as reader:
         duration = (reader.end_ns - reader.start_ns) / 1e9
     cameras = GroundTruth(bag).rig.names
-    print(f'[2/2] replaying {duration:.1f} s through bag_player (its own process) into a subscriber')
+    print(f'[2/4] replaying {duration:.1f} s through bag_player (its own process) into a subscriber')
     transport.configure()
     rclpy.init()
     monitor = StreamMonitor(cameras)
@@ -142,7 +143,16 @@ def cmd_demo(args) -> int:
     if code != 0:
         print(f'bag_player exited with {code}', file=sys.stderr)
         return 1
-    return 0 if summary['frame_sets_complete'] > 0 else 1
+    if summary['frame_sets_complete'] == 0:
+        return 1
+    calibration = out / 'calibration.yaml'
+    print(f'[3/4] calibrating the rig from the board views: volcap calibrate -> {calibration}')
+    if main(['calibrate', str(bag), '--out', str(calibration), '--quiet']) != 0:
+        return 1
+    print(f'[4/4] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
+          f'{out / "figures"}')
+    return main(['eval', 'colour', str(bag), '--calibration', str(calibration), '--frames', '4', '--json',
+                 str(out / 'colour.json'), '--figures', str(out / 'figures'), '--quiet'])
 
 
 def _same_config(bag: Path, cfg) -> bool:
