@@ -24,8 +24,6 @@ from volcap_calib.colour import ColourModel, linear_to_srgb, srgb_to_linear
 
 ENCODE_STEPS = 16384     # linear [0, 1] -> uint8 table; finer than one sRGB level everywhere
 LUT_SIZE = 33
-
-
 FIELD_BITS = 21          # three output channels packed into one int64 table entry
 CHUNKS = 4               # work items per call (two per core on the 2-core target)
 
