@@ -56,13 +56,13 @@ def cmd_eval_colour(args) -> int:
 def cmd_colour_fit(args) -> int:
     from volcap_calib.colour import ColourModel
     from volcap_color.correspondence import find_correspondences
-    from volcap_color.evaluate import capture_views, merge_matches
+    from volcap_color.evaluate import cameras_in, capture_views, merge_matches
     from volcap_color.methods import chart_free_fit
     from volcap_core.calibration import Calibration
     calibration = Calibration.load(args.calibration)
     cfg = _eval_config(args)
     sets = capture_views(args.bag, calibration, args.frames, not args.quiet)
-    cameras = [v.name for v in sets[0]]
+    cameras = cameras_in(sets, calibration)
     matches = merge_matches([find_correspondences(v, cfg.correspondence) for v in sets], cfg.fit_min_fraction)
     if not matches:
         raise ValueError(f'no camera pair of {args.bag} has {cfg.fit_min_fraction:.1%} of its pixels in correspondence')

@@ -10,7 +10,8 @@ import numpy as np
 from volcap_core.files import atomic_write
 
 
-def _save(fig, path: str | Path) -> Path:
+def save_figure(fig, path: str | Path) -> Path:
+    """A matplotlib figure as a PNG, written atomically."""
     buf = io.BytesIO()
     fig.savefig(buf, format='png', dpi=110, bbox_inches='tight')
     return atomic_write(path, lambda f: f.write(buf.getvalue()))
@@ -45,7 +46,7 @@ def poses_figure(path: str | Path, T_world_color: dict[str, np.ndarray], T_world
             ax.invert_yaxis()   # optical y points down
     axes[0].set_title(f'{title}: top view (world = reference colour frame)')
     axes[1].set_title('front view; squares: board views' + ('; x: ground truth' if T_gt else ''))
-    out = _save(fig, path)
+    out = save_figure(fig, path)
     plt.close(fig)
     return out
 
@@ -73,7 +74,7 @@ def colour_figure(path: str | Path, colour: dict[str, dict]) -> Path:
         ax.set_xticks(x, [f'{c}\n{colour[c]["method"]}' for c in names], fontsize=7)
         ax.legend(fontsize=8)
         ax.grid(axis='y', alpha=0.3)
-    out = _save(fig, path)
+    out = save_figure(fig, path)
     plt.close(fig)
     return out
 
@@ -105,6 +106,6 @@ def chart_figure(path: str | Path, image: np.ndarray, centres: np.ndarray, measu
     axes[1].imshow(swatch, interpolation='nearest')
     axes[1].set_title(f'photo | corrected | reference; CIEDE2000 mean {de_before.mean():.2f} -> {de_after.mean():.2f}')
     axes[1].axis('off')
-    out = _save(fig, path)
+    out = save_figure(fig, path)
     plt.close(fig)
     return out

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from volcap_core.camera import CameraModel
+from volcap_core.sampling import sample_bilinear
 
 
 @dataclass
@@ -111,17 +112,6 @@ def _normals(points: np.ndarray) -> np.ndarray:
     return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
 
 
-def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(N, C) float64 samples of an (H, W, C) image at sub-pixel x, y (inside [0, W-1) x [0, H-1))."""
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    def at(dy, dx):
-        return image[y0 + dy, x0 + dx].astype(np.float64)
-    top = at(0, 0) * (1 - fx) + at(0, 1) * fx
-    bottom = at(1, 0) * (1 - fx) + at(1, 1) * fx
-    return top * (1 - fy) + bottom * fy
-
-
 def _bilinear_depth_ok(depth: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, tol: np.ndarray) -> np.ndarray:
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     ok = np.ones(len(x), bool)
@@ -163,24 +153,25 @@ def match_pair(a: View, b: View, cfg: CorrespondenceConfig = CorrespondenceConfi
     x, y, v, u = x[ok], y[ok], v[ok], u[ok]
     if not len(x):
         return empty
+    at_b = np.stack([x, y], 1).astype(np.float32)
     # Round trip: b's own surface point at the match, taken back into a. A depth error of a
     # moves the match sideways in b; b's surface there then lands away from a's pixel.
-    back = bilinear(b.rays(), x, y) * bilinear(b.depth[..., None], x, y)
+    back = (sample_bilinear(b.rays(), at_b) * sample_bilinear(b.depth, at_b)).astype(np.float64)
     T_ab = np.linalg.inv(T)
     back_px = a.camera.project(back @ T_ab[:3, :3].T + T_ab[:3, 3])
     ok = np.linalg.norm(back_px - np.stack([u * s, v * s], 1), axis=1) <= cfg.max_round_trip_px
     if cfg.max_gradient > 0:
         # On a texture edge a tenth of a pixel of misregistration, or the two cameras' different
         # pixel footprints, is a large colour difference that no colour model should chase.
-        ok &= (a.gradient()[v * s, u * s] <= cfg.max_gradient) & (bilinear(b.gradient()[..., None], x, y)[:, 0]
-                                                                     <= cfg.max_gradient)
-    x, y, v, u = x[ok].astype(np.float32), y[ok].astype(np.float32), v[ok] * s, u[ok] * s
-    if not len(x):
+        ok &= (a.gradient()[v * s, u * s] <= cfg.max_gradient) & \
+            (sample_bilinear(b.gradient(), at_b)[:, 0] <= cfg.max_gradient)
+    at_b, v, u = at_b[ok], v[ok] * s, u[ok] * s
+    if not len(at_b):
         return empty
     colours_a = a.color[v, u].astype(np.float64) / 255.0
-    colours_b = bilinear(b.color, x, y) / 255.0
-    return Matches(a.name, b.name, np.stack([u, v], 1).astype(np.int32), np.stack([x, y], 1), colours_a, colours_b,
-                   len(x) * s * s / float(a.depth.size))
+    colours_b = sample_bilinear(b.color, at_b).astype(np.float64) / 255.0   # 8-bit, like a resampled image
+    return Matches(a.name, b.name, np.stack([u, v], 1).astype(np.int32), at_b, colours_a, colours_b,
+                   len(at_b) * s * s / float(a.depth.size))
 
 
 def find_correspondences(views: list[View], cfg: CorrespondenceConfig = CorrespondenceConfig()

@@ -85,7 +85,8 @@ def capture_views(bag: str | Path, calibration: Calibration, frames: int, progre
             f = fs.cameras[n]
             c = cleaner(n, f)
             res = c.process(f.color, f.depth)
-            view = View(n, f.color, smooth_depth(res.depth), c.output_model, calibration.T_world_color(n), rays.get(n))
+            view = View(n, f.color, smooth_depth(res.depth), c.output_model, calibration.T_world_color(n),
+                        _rays=rays.get(n))
             rays[n] = view.rays()
             views.append(view)
         sets.append(views)
@@ -96,6 +97,12 @@ def capture_views(bag: str | Path, calibration: Calibration, frames: int, progre
     if not sets:
         raise ValueError(f'{bag} has no capture frame sets: the colour evaluation needs a subject in view')
     return sets
+
+
+def cameras_in(sets: list[list[View]], calibration: Calibration) -> list[str]:
+    """The calibration's cameras seen in any of the frame sets (one missing from a set still counts)."""
+    seen = {v.name for views in sets for v in views}
+    return [c for c in calibration.cameras if c in seen]
 
 
 def merge_matches(per_set: list[dict[tuple[str, str], Matches]], min_fraction: float) -> dict[tuple[str, str], Matches]:
@@ -199,7 +206,7 @@ def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: di
     """(report, extras): the report as documented in the README; extras hold the first scored
     frame set's views and every method's mappings, for figures."""
     sets = capture_views(bag, calibration, cfg.frames, progress)
-    cameras = [v.name for v in sets[0]]
+    cameras = cameras_in(sets, calibration)
     per_set = [find_correspondences(views, cfg.correspondence)
                for views in tqdm(sets, desc='correspondences', unit='set', disable=not progress)]
     fit_idx = list(range(0, len(sets), 2))
@@ -208,11 +215,12 @@ def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: di
     scored_sets = [per_set[i] for i in score_idx]
     scored = merge_matches(scored_sets, cfg.eval_min_fraction)
     thin = merge_matches(scored_sets, cfg.fit_min_fraction)
+    scored_keys = {f'{a}-{b}' for a, b in scored}
     mappings, skipped, models = method_mappings(fit, cameras, calibration, chart_samples, cfg)
     methods, all_pairs, pairs, table1 = {}, {}, {}, {}
     for name in tqdm(mappings, desc='scoring methods', unit='method', disable=not progress):
         pairs[name] = pair_scores(thin, mappings[name], cfg.max_scored_per_pair, cfg.seed)
-        methods[name] = summarise({p: v for p, v in pairs[name].items() if tuple(p.split('-')) in scored})
+        methods[name] = summarise({p: v for p, v in pairs[name].items() if p in scored_keys})
         all_pairs[name] = summarise(pairs[name])
         if chart_samples:
             table1[name] = chart_table(chart_samples, mappings[name])

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from volcap_calib.report import _save
+from volcap_calib.report import save_figure
 from volcap_filter.figures import write_png
 
 from .apply import ImageCorrector
@@ -35,7 +35,7 @@ def bars_figure(path: str | Path, report: dict) -> Path:
             ax.annotate(f'{v:.2f}', (i, v), ha='center', va='bottom', fontsize=7, xytext=(0, 2), textcoords='offset points')
     pairs = max(report['methods'][n]['pairs'] for n in names) if names else 0
     fig.suptitle(f'pairwise colour consistency over {pairs} camera pairs')
-    out = _save(fig, path)
+    out = save_figure(fig, path)
     plt.close(fig)
     return out
 

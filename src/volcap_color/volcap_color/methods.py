@@ -187,7 +187,7 @@ def moulon(matches: dict[tuple[str, str], Matches], cameras: list[str], referenc
     gains, offsets = np.ones((n, 3)), np.zeros((n, 3))
     for k in range(3):
         # variables: gain_0..n-1, offset_0..n-1, gamma
-        A, bnd = [], []
+        A = []
         for (a, b), m in matches.items():
             qa, qb = np.quantile(m.colours_a[:, k], levels), np.quantile(m.colours_b[:, k], levels)
             for x, y in zip(qa, qb):
@@ -292,14 +292,20 @@ def chart_free_fit(matches: dict[tuple[str, str], Matches], cameras: list[str], 
     charts = {idx[c]: (linear(c, anchor[c][0]), srgb_to_linear(anchor[c][1])) for c in cameras} \
         if reference == 'chart' else {}
     p = len(_identity_row(model, 0))
+    # per pair and output channel, both cameras' features, built once (one array for all three
+    # channels where the model's inputs do not depend on the channel)
+    shared = model in ('matrix_3x3', 'affine_3x4')
+    features = [[(_features(model, xa, k), _features(model, xb, k)) for k in range(1 if shared else 3)]
+                for _, _, xa, xb in pairs]
+    features = [f * 3 if shared else f for f in features]
     weights = [np.ones(len(xa)) for _, _, xa, _ in pairs]
     for _ in range(iterations):
         for k in range(3):
             N = np.zeros((n * p, n * p))
             rhs = np.zeros(n * p)
             load = np.zeros(n)      # each camera's total correspondence weight
-            for (a, b, xa, xb), w in zip(pairs, weights):
-                Fa, Fb = _features(model, xa, k), _features(model, xb, k)
+            for (a, b, _, _), w, per_channel in zip(pairs, weights, features):
+                Fa, Fb = per_channel[k]
                 sa, sb = slice(a * p, (a + 1) * p), slice(b * p, (b + 1) * p)
                 Faa, Fbb, Fab = (Fa * w[:, None]).T @ Fa, (Fb * w[:, None]).T @ Fb, (Fa * w[:, None]).T @ Fb
                 N[sa, sa] += Faa
@@ -333,9 +339,9 @@ def chart_free_fit(matches: dict[tuple[str, str], Matches], cameras: list[str], 
             for i in range(n):
                 rows[i][k] = sol[i] if i in connected or i in charts else _identity_row(model, k)
         residuals = []
-        for a, b, xa, xb in pairs:
-            ya = np.stack([_features(model, xa, k) @ rows[a][k] for k in range(3)], 1)
-            yb = np.stack([_features(model, xb, k) @ rows[b][k] for k in range(3)], 1)
+        for (a, b, _, _), per_channel in zip(pairs, features):
+            ya = np.stack([per_channel[k][0] @ rows[a][k] for k in range(3)], 1)
+            yb = np.stack([per_channel[k][1] @ rows[b][k] for k in range(3)], 1)
             residuals.append(np.linalg.norm(ya - yb, axis=1))
         sigma = 1.4826 * np.median(np.concatenate(residuals)) + 1e-6
         weights = [1.0 / (1.0 + (r / (2.0 * sigma)) ** 2) for r in residuals]

@@ -18,8 +18,9 @@ import open3d as o3d
 
 from volcap_core.camera import CameraModel
 from volcap_core.poses import invert, transform_points
+from volcap_core.sampling import sample_bilinear
 
-from .scene import Light, SceneObject, sample_bilinear
+from .scene import Light, SceneObject
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 

@@ -8,27 +8,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 import open3d as o3d
 
 from volcap_calib.board import BoardConfig
 from volcap_core.poses import make_transform
+from volcap_core.sampling import sample_bilinear
 
 
 def srgb_to_linear(c) -> np.ndarray:
     c = np.asarray(c, dtype=np.float64)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def sample_bilinear(image: np.ndarray, px: np.ndarray) -> np.ndarray:
-    """Bilinear samples (N, C) of a float32 (H, W, C) image at pixel coordinates (N, 2)."""
-    n = len(px)
-    # cv2.remap maps must stay under 32767 rows: lay the lookups out 1024 wide.
-    maps = np.zeros((-(-n // 1024) * 1024, 2), np.float32)
-    maps[:n] = px
-    out = cv2.remap(image, maps.reshape(-1, 1024, 2), None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(-1, image.shape[2])[:n]
 
 
 @dataclass
