@@ -12,13 +12,9 @@ import numpy as np
 import open3d as o3d
 
 from volcap_calib.board import BoardConfig
+from volcap_calib.colour import srgb_to_linear
 from volcap_core.poses import make_transform
 from volcap_core.sampling import sample_bilinear
-
-
-def srgb_to_linear(c) -> np.ndarray:
-    c = np.asarray(c, dtype=np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 @dataclass
