@@ -98,3 +98,43 @@ def test_new_calibration_is_used_without_restart_and_bad_images_are_reported(ros
         assert level_after() == brighter                         # still running
     finally:
         probe.close()
+
+
+def test_neural_models_are_applied_live(ros_context, procs, tmp_path):
+    """With ``neural_models`` the node applies the camera's exported region LUT (here one that
+    maps every colour to a level set by the image column: left half 40, right half 200),
+    whatever the calibration says; a folder without the camera's LUT falls back and says so."""
+    from volcap_color.apply import RegionLut
+    table = np.zeros((2, 2, 2, 2, 2, 3), np.float32)
+    table[..., 0, :], table[..., 1, :] = 40.0, 200.0
+    RegionLut(table).save(tmp_path / 'cam2.lut.npz')
+    probe = Probe(ros_context, [(f'/{c}/{topics.COLOR_CORRECTED}', Image, qos.SENSOR) for c in ('cam2', 'cam5')]
+                  + [('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
+    pubs = {c: probe.node.create_publisher(Image, f'/{c}/{topics.COLOR_IMAGE}', qos.DRIVER) for c in ('cam2', 'cam5')}
+    calib_pub = probe.node.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
+    calib_pub.publish(String(data=_calibration(['cam2', 'cam5'], 0.25).to_yaml()))
+    grey = np.full((48, 64, 3), 128, np.uint8)
+    try:
+        for c in ('cam2', 'cam5'):
+            procs.append(start_node('volcap_color', 'color_corrector', {'neural_models': str(tmp_path)}, namespace=c))
+        assert probe.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), timeout=60)
+
+        def latest(c):
+            got = probe.got[f'/{c}/{topics.COLOR_CORRECTED}']
+            return image_to_numpy(got[-1][1]) if got else None
+
+        def corrected():
+            for p in pubs.values():
+                p.publish(numpy_to_image(grey, 'rgb8', 1, 'f'))
+            # cam5 passes images through until the latched calibration reaches it
+            return latest('cam2') is not None and latest('cam5') is not None and latest('cam5').mean() < 100
+        assert probe.spin_until(corrected, timeout=60)
+        out = latest('cam2')
+        # the outermost pixel centres are half a pixel inside the two image nodes
+        assert abs(int(out[20, 0, 0]) - 41) <= 1 and abs(int(out[20, 63, 0]) - 199) <= 1
+        assert np.all(np.diff(out[20, :, 0].astype(int)) >= 0)
+        assert probe.spin_until(lambda: any('cam5' in s.message and 'not a region LUT' in s.message
+                                            for _, m in probe.got['/' + topics.DIAGNOSTICS] for s in m.status),
+                                timeout=10)
+    finally:
+        probe.close()

@@ -20,7 +20,8 @@ setup(
     maintainer_email='dev@volcap.invalid',
     description='Per-camera colour correction, neural harmonisation and colour evaluation for volcap.',
     license='Apache-2.0',
-    extras_require={'test': ['pytest']},
+    # torch only for volcap harmonise (training); the node applies the exported LUTs without it
+    extras_require={'test': ['pytest'], 'neural': ['torch']},
     entry_points={
         'console_scripts': [
             'color_corrector = volcap_color.color_corrector_node:main',

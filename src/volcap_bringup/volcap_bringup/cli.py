@@ -90,6 +90,11 @@ def cmd_eval_registration(args) -> int:
     return 0
 
 
+# a third of the default training, so the demo stays a few minutes (the README gives full-length figures)
+DEMO_HARMONISE = ('--points', '100000', '--field-epochs', '40', '--field-lr', '5e-4', '--field-lr-final', '5e-5',
+                  '--mapper-points', '30000')
+
+
 def cmd_demo(args) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -106,15 +111,15 @@ def cmd_demo(args) -> int:
     # 16 board poses: enough shared views to chain the four stands for the calibration step
     cfg = SynthConfig(cameras=8, frames=args.frames, board_poses=16, background_frames=3, seed=args.seed)
     if bag.exists() and _same_config(bag, cfg):
-        print(f'[1/4] reusing the studio bag {bag}')
+        print(f'[1/5] reusing the studio bag {bag}')
     else:
-        print(f'[1/4] rendering a synthetic 8-camera studio session into {bag}')
+        print(f'[1/5] rendering a synthetic 8-camera studio session into {bag}')
         out.mkdir(parents=True, exist_ok=True)
         synthesize(bag, cfg, overwrite=True)
     with BagReader(bag) as reader:
         duration = (reader.end_ns - reader.start_ns) / 1e9
     cameras = GroundTruth(bag).rig.names
-    print(f'[2/4] replaying {duration:.1f} s through bag_player (its own process) into a subscriber')
+    print(f'[2/5] replaying {duration:.1f} s through bag_player (its own process) into a subscriber')
     transport.configure()
     rclpy.init()
     monitor = StreamMonitor(cameras)
@@ -146,13 +151,18 @@ def cmd_demo(args) -> int:
     if summary['frame_sets_complete'] == 0:
         return 1
     calibration = out / 'calibration.yaml'
-    print(f'[3/4] calibrating the rig from the board views: volcap calibrate -> {calibration}')
+    print(f'[3/5] calibrating the rig from the board views: volcap calibrate -> {calibration}')
     if main(['calibrate', str(bag), '--out', str(calibration), '--quiet']) != 0:
         return 1
-    print(f'[4/4] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
+    models = out / 'neural'
+    print(f'[4/5] neural colour harmonisation (paper 001), a short run of volcap harmonise -> {models}')
+    if main(['harmonise', str(bag), '--calibration', str(calibration), '--out', str(models), '--frames', '4',
+             *DEMO_HARMONISE, '--quiet']) != 0:
+        return 1
+    print(f'[5/5] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
           f'{out / "figures"}')
-    return main(['eval', 'colour', str(bag), '--calibration', str(calibration), '--frames', '4', '--json',
-                 str(out / 'colour.json'), '--figures', str(out / 'figures'), '--quiet'])
+    return main(['eval', 'colour', str(bag), '--calibration', str(calibration), '--frames', '4', '--neural',
+                 str(models), '--json', str(out / 'colour.json'), '--figures', str(out / 'figures'), '--quiet'])
 
 
 def _same_config(bag: Path, cfg) -> bool:

@@ -1,8 +1,10 @@
-"""``volcap eval colour`` and ``volcap colour-fit``."""
+"""``volcap eval colour``, ``volcap colour-fit`` and ``volcap harmonise``."""
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import replace
+from pathlib import Path
 
 from volcap_core.files import atomic_write
 
@@ -38,7 +40,8 @@ def cmd_eval_colour(args) -> int:
     calibration = Calibration.load(args.calibration)
     samples, why = (None, 'skipped (--no-chart)') if args.no_chart else \
         _chart_samples(args.bag, _board(args.board), list(calibration.cameras), not args.quiet)
-    report, extras = evaluate_colour(args.bag, calibration, samples, _eval_config(args), not args.quiet)
+    report, extras = evaluate_colour(args.bag, calibration, samples, _eval_config(args), not args.quiet,
+                                     neural=args.neural)
     if why:
         report['table1_skipped'] = why
     print(format_report(report))
@@ -48,7 +51,8 @@ def cmd_eval_colour(args) -> int:
         atomic_write(args.json, lambda f: f.write(json.dumps(report, indent=2)), binary=False)
         print(f'wrote {args.json}')
     if args.figures:
-        for p in write_colour_figures(args.figures, report, extras['views'], extras['mappings'], extras['models']):
+        for p in write_colour_figures(args.figures, report, extras['views'], extras['mappings'], extras['models'],
+                                      extras['region_luts']):
             print(f'wrote {p}')
     return 0
 
@@ -91,6 +95,62 @@ def cmd_colour_fit(args) -> int:
     return 0
 
 
+def harmonise_config(args):
+    from volcap_color.neural import HarmoniseConfig
+    try:
+        nx, ny = (int(v) for v in args.lut_grid.lower().split('x'))
+    except ValueError:
+        raise ValueError(f'--lut-grid is NXxNY, for example 9x5, not {args.lut_grid!r}') from None
+    keys = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points', 'mapper_epochs',
+            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'reference', 'lut_colours', 'seed', 'device', 'precision')
+    cfg = HarmoniseConfig(**{k: getattr(args, k) for k in keys}, lut_grid=(nx, ny))
+    for k in ('points', 'field_epochs', 'field_batch', 'mapper_points', 'mapper_epochs', 'mapper_batch'):
+        if getattr(cfg, k) < 1:
+            raise ValueError(f'--{k.replace("_", "-")} must be at least 1')
+    if cfg.lut_colours < 2 or nx < 2 or ny < 2:
+        raise ValueError('--lut-colours and both --lut-grid sizes must be at least 2')
+    return cfg
+
+
+def cmd_harmonise(args) -> int:
+    from volcap_color.evaluate import cameras_in, capture_views
+    from volcap_color.figures import training_figure
+    from volcap_color.neural import MANIFEST, export_live, harmonise
+    from volcap_core.calibration import Calibration
+    cfg = harmonise_config(args)
+    calibration = Calibration.load(args.calibration)
+    t0 = time.perf_counter()
+    sets = capture_views(args.bag, calibration, args.frames, not args.quiet)
+    cameras = cameras_in(sets, calibration)
+    trained = list(range(0, len(sets), 2)) if args.train_sets == 'even' and len(sets) > 1 else list(range(len(sets)))
+    checked = [i for i in range(len(sets)) if i not in trained] or trained
+    t1 = time.perf_counter()
+    harm = harmonise([sets[i] for i in trained], cameras, cfg, args.out, resume=args.resume, progress=not args.quiet)
+    t2 = time.perf_counter()
+    live = export_live(harm, args.out, [v for i in checked for v in sets[i]], progress=not args.quiet)
+    t3 = time.perf_counter()
+    manifest = {**harm.report, **live, 'bag': str(args.bag), 'calibration': str(args.calibration),
+                'frame_sets': {'read': len(sets), 'trained': trained, 'checked': checked,
+                               'checked_held_out': checked != trained},
+                'seconds': {'views': t1 - t0, 'training': t2 - t1, 'export': t3 - t2, 'total': t3 - t0}}
+    out = Path(args.out)
+    atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=2)), binary=False)
+    training_figure(out / 'training.png', manifest)
+    err = live['export_error']
+    print(f"E: {manifest['field_samples']} samples, {len(manifest['field']['losses'])} epochs, final RMS "
+          f"{255 * manifest['field']['losses'][-1] ** 0.5:.2f} levels, {manifest['field']['seconds']:.0f} s "
+          f"({manifest['device']}{', bf16' if manifest['bf16'] else ''})")
+    for c in cameras:
+        m, e = harm.report['mapper_error'].get(c), err.get(c)
+        if m and e:
+            print(f'{c}: D vs E\'s reference on held-out pixels RMS {m["rms_levels"]:.2f} levels; live LUT vs D '
+                  f'mean {e["mean_levels"]:.2f}, '
+                  f'p99 {e["p99_levels"]:.0f}, max {e["max_levels"]:.0f} levels')
+    print(f'wrote {out}/ (manifest.json, field.pt, <camera>.mapper.pt, <camera>.lut.npz, training.png) '
+          f'in {t3 - t0:.0f} s')
+    return 0
+
+
 def add_parsers(sub, eval_sub) -> None:
     def common(p):
         p.add_argument('bag')
@@ -105,6 +165,8 @@ def add_parsers(sub, eval_sub) -> None:
     e.add_argument('--json', help='write the report here')
     e.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
     e.add_argument('--no-chart', action='store_true', help='leave out the chart methods and table')
+    e.add_argument('--neural', help='a volcap harmonise output folder: score its networks (neural) and live '
+                                    'form (neural_live) too')
     e.set_defaults(func=cmd_eval_colour)
 
     f = sub.add_parser('colour-fit', help='per-camera colour models from correspondences between the cameras')
@@ -115,3 +177,32 @@ def add_parsers(sub, eval_sub) -> None:
                    help='mean (no camera favoured), chart (on top of the calibration\'s chart models, anchored to '
                         'the bag\'s board views) or a camera name')
     f.set_defaults(func=cmd_colour_fit)
+
+    from volcap_color.neural_config import HarmoniseConfig
+    d = HarmoniseConfig()
+    h = sub.add_parser('harmonise', help='train paper 001\'s colour field E and per-camera networks D (torch), '
+                                         'and export them for color_corrector')
+    common(h)
+    h.add_argument('--out', required=True, help='folder for the models (created)')
+    h.add_argument('--train-sets', choices=('even', 'all'), default='even',
+                   help='train on the 1st, 3rd, ... frame set (the colour evaluation scores the others) or on all')
+    h.add_argument('--points', type=int, default=d.points, help='surface samples for E')
+    h.add_argument('--field-epochs', type=int, default=d.field_epochs)
+    h.add_argument('--field-batch', type=int, default=d.field_batch)
+    h.add_argument('--field-lr', type=float, default=d.field_lr)
+    h.add_argument('--field-lr-final', type=float, default=d.field_lr_final,
+                   help='decay the learning rate exponentially to this by the last epoch (default: constant)')
+    h.add_argument('--mapper-points', type=int, default=d.mapper_points, help='pixels per camera for its D')
+    h.add_argument('--mapper-epochs', type=int, default=d.mapper_epochs)
+    h.add_argument('--mapper-batch', type=int, default=d.mapper_batch)
+    h.add_argument('--mapper-lr', type=float, default=d.mapper_lr)
+    h.add_argument('--mapper-lr-final', type=float, default=d.mapper_lr_final)
+    h.add_argument('--reference', default=d.reference, help='camera whose colours D reproduces, or mean (E '
+                                                            'averaged over every camera)')
+    h.add_argument('--lut-colours', type=int, default=d.lut_colours, help='live form: colour nodes per axis')
+    h.add_argument('--lut-grid', default='x'.join(map(str, d.lut_grid)), help='live form: image nodes, NXxNY')
+    h.add_argument('--seed', type=int, default=d.seed)
+    h.add_argument('--device', choices=('auto', 'cpu', 'cuda'), default=d.device)
+    h.add_argument('--precision', choices=('auto', 'bf16', 'fp32'), default=d.precision)
+    h.add_argument('--resume', action='store_true', help='carry on from the checkpoint in --out')
+    h.set_defaults(func=cmd_harmonise)

@@ -10,21 +10,30 @@ exact, but about a second per 1280x720 frame. Live correction instead compiles i
   contribution to all three outputs, in 1/16383 steps of linear light, packed into one int64)
   and a table out (within one level of the exact model, tested);
 - everything else (root-polynomial models, or any model given as a callable) is sampled into a
-  33^3 3D LUT and interpolated trilinearly.
+  33^3 3D LUT and interpolated trilinearly;
+- a ``RegionLut`` (the live form of a neural mapping D(r, g, b, x, y), ``neural.bake_region_lut``)
+  is a 3D LUT at each node of a coarse grid over the image: trilinear in colour, bilinear
+  between the four nodes around the pixel.
 """
 from __future__ import annotations
 
+import io
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import cv2
 import numba
 import numpy as np
+from scipy.ndimage import map_coordinates
 
 from volcap_calib.colour import ColourModel, linear_to_srgb, srgb_to_linear
+from volcap_core.files import atomic_write
 
 ENCODE_STEPS = 16384     # linear [0, 1] -> uint8 table; finer than one sRGB level everywhere
 LUT_SIZE = 33
 FIELD_BITS = 21          # three output channels packed into one int64 table entry
+WEIGHT_BITS = 12         # region LUT: integer interpolation weights sum to 2^12 (255 * 2^12 < 2^21)
 CHUNKS = 4               # work items per call (two per core on the 2-core target)
 
 
@@ -69,6 +78,91 @@ def _lut_kernel(image, lut, out):
                 out[y, x, k] = min(max(int(v + np.float32(0.5)), 0), 255)
 
 
+@numba.njit(parallel=True, cache=True)
+def _region_lut_kernel(image, packed, col_node, col_weight, row_node, row_weight, out):
+    # packed[r, g, b, node_y, node_x] holds the three output levels, one 21-bit field each, and
+    # the 32 weights (8 colour corners x 4 image nodes) are integers summing to about
+    # 2^WEIGHT_BITS: each corner is one load and one integer multiply-add for all three channels
+    # (three times fewer loads than float tables, which made this kernel load-bound).
+    h, w = image.shape[0], image.shape[1]
+    cells = packed.shape[0] - 1
+    scale = np.float32(cells / 255.0)
+    one = np.float32(1.0)
+    unit = np.float32(1 << WEIGHT_BITS)
+    half = np.float32(0.5)
+    mask = (1 << FIELD_BITS) - 1
+    rounding = 1 << (WEIGHT_BITS - 1)
+    for y in numba.prange(h):
+        iy, wy = row_node[y], row_weight[y]
+        for x in range(w):
+            ix, wx = col_node[x], col_weight[x]
+            s00, s01 = (one - wy) * (one - wx) * unit, (one - wy) * wx * unit
+            s10, s11 = wy * (one - wx) * unit, wy * wx * unit
+            fr, fg, fb = image[y, x, 0] * scale, image[y, x, 1] * scale, image[y, x, 2] * scale
+            r, g, b = min(int(fr), cells - 1), min(int(fg), cells - 1), min(int(fb), cells - 1)
+            dr, dg, db = fr - r, fg - g, fb - b
+            acc = 0
+            for corner in range(8):
+                cr, cg, cb = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
+                wc = (dr if cr else one - dr) * (dg if cg else one - dg) * (db if cb else one - db)
+                t = packed[r + cr, g + cg, b + cb]
+                acc += (t[iy, ix] * int(wc * s00 + half) + t[iy, ix + 1] * int(wc * s01 + half)
+                        + t[iy + 1, ix] * int(wc * s10 + half) + t[iy + 1, ix + 1] * int(wc * s11 + half))
+            out[y, x, 0] = min(((acc & mask) + rounding) >> WEIGHT_BITS, 255)
+            out[y, x, 1] = min((((acc >> FIELD_BITS) & mask) + rounding) >> WEIGHT_BITS, 255)
+            out[y, x, 2] = min((((acc >> (2 * FIELD_BITS)) & mask) + rounding) >> WEIGHT_BITS, 255)
+
+
+@dataclass
+class RegionLut:
+    """A colour mapping that varies over the image: ``table[r, g, b, j, i]`` (0-255) is the
+    mapped colour of (r, g, b) = (0..N-1) / (N-1) at image position x = i / (nx-1),
+    y = j / (ny-1), positions being pixel centres over the image size."""
+    table: np.ndarray            # (N, N, N, ny, nx, 3) float32
+
+    def __post_init__(self):
+        self.table = np.ascontiguousarray(self.table, np.float32)
+        t = self.table
+        if t.ndim != 6 or t.shape[0] != t.shape[1] or t.shape[1] != t.shape[2] or t.shape[5] != 3 \
+                or min(t.shape[:5]) < 2:
+            raise ValueError(f'a region LUT is (N, N, N, ny, nx, 3) with every size >= 2, got {t.shape}')
+        if not np.isfinite(t).all():
+            raise ValueError('the region LUT has non-finite entries')
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        return self.table.shape[4], self.table.shape[3]
+
+    def nodes(self, size: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per pixel along one image axis of ``size``: the node before it and the weight of the next."""
+        u = (np.arange(size) + 0.5) / size * (count - 1)
+        node = np.minimum(u.astype(np.int64), count - 2)
+        return node, (u - node).astype(np.float32)
+
+    def apply_points(self, rgb: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """The same interpolation in float64 for sRGB (N, 3) in [0, 1] at normalised pixel
+        positions (N, 2): scoring samples instead of whole images."""
+        n = self.table.shape[0] - 1
+        nx, ny = self.grid
+        coords = np.concatenate([np.clip(rgb, 0, 1).T * n, (np.clip(xy[:, 1], 0, 1) * (ny - 1))[None],
+                                 (np.clip(xy[:, 0], 0, 1) * (nx - 1))[None]])
+        return np.stack([map_coordinates(self.table[..., k].astype(np.float64), coords, order=1, mode='nearest')
+                         for k in range(3)], axis=1) / 255.0
+
+    def save(self, path: str | Path, **metadata) -> Path:
+        buf = io.BytesIO()
+        np.savez_compressed(buf, table=self.table, **{k: np.asarray(v) for k, v in metadata.items()})
+        return atomic_write(path, lambda f: f.write(buf.getvalue()))
+
+    @classmethod
+    def load(cls, path: str | Path) -> RegionLut:
+        try:
+            with np.load(path) as z:
+                return cls(z['table'])
+        except (OSError, KeyError, ValueError, EOFError) as e:
+            raise ValueError(f'{path}: not a region LUT ({e})') from e
+
+
 def _packed_tables(matrix: np.ndarray, decode: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Integer tables of ``output_k = sum_c matrix[k, c] decode[c, v_c] + matrix[k, 3]`` in steps of
     1 / (ENCODE_STEPS - 1) of linear light, packed for ``_linear_kernel``, and per output channel
@@ -102,10 +196,16 @@ def lut_from_function(correct: Callable[[np.ndarray], np.ndarray], size: int = L
 class ImageCorrector:
     """Applies one colour model to uint8 RGB images at full rate (see the module docstring)."""
 
-    def __init__(self, model: ColourModel | Callable[[np.ndarray], np.ndarray], lut_size: int = LUT_SIZE):
+    def __init__(self, model: ColourModel | RegionLut | Callable[[np.ndarray], np.ndarray], lut_size: int = LUT_SIZE):
         self.model = model
         self.kind = 'lut'
-        if isinstance(model, ColourModel) and model.method == 'paper_diagonal':
+        self._nodes: dict[tuple[int, int], tuple] = {}
+        if isinstance(model, RegionLut):
+            self.kind = 'region_lut'
+            levels = np.clip(np.round(model.table), 0, 255).astype(np.int64)
+            self._packed = np.ascontiguousarray(levels[..., 0] + (levels[..., 1] << FIELD_BITS)
+                                                + (levels[..., 2] << (2 * FIELD_BITS)))
+        elif isinstance(model, ColourModel) and model.method == 'paper_diagonal':
             self.kind = 'diagonal'
             self._matrix = model.matrix.astype(np.float32)
         elif isinstance(model, ColourModel) and model.method in ('matrix_3x3', 'affine_3x4', 'gamma_3x3'):
@@ -135,6 +235,12 @@ class ImageCorrector:
         image = np.ascontiguousarray(image)
         if self.kind == 'linear':
             _linear_kernel(image.reshape(-1), self._packed, self._encode, out.reshape(-1))
+        elif self.kind == 'region_lut':
+            h, w = image.shape[:2]
+            if (h, w) not in self._nodes:
+                nx, ny = self.model.grid
+                self._nodes[(h, w)] = (*self.model.nodes(w, nx), *self.model.nodes(h, ny))
+            _region_lut_kernel(image, self._packed, *self._nodes[(h, w)], out)
         else:
             _lut_kernel(image, self._lut, out)
         return out

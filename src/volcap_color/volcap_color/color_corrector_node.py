@@ -7,11 +7,17 @@ Subscribes ``color/image_raw`` (rgb8, bgr8, rgba8 or bgra8) and the latched
 calibration is picked up as it is published, without a restart. Until a calibration with a
 colour model for this camera arrives, images are passed through unchanged (``passthrough``,
 default) or dropped; either way ``/volcap/diagnostics`` says so.
+
+With ``neural_models`` (a ``volcap harmonise`` output folder) the camera's exported neural
+mapping (``<camera>.lut.npz``, a region LUT) is applied instead, and calibrations no longer
+change the model; a folder without this camera's LUT is reported and the calibration's model
+is used.
 """
 from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import yaml
@@ -25,7 +31,7 @@ from volcap_core.calibration import Calibration
 from volcap_core.conversions import MessageConversionError, color_to_rgb, numpy_to_image, stamp_to_ns
 from volcap_core.ros import Diagnostics, declare, run_node
 
-from .apply import ImageCorrector
+from .apply import ImageCorrector, RegionLut
 
 
 class ColorCorrector(Node):
@@ -35,10 +41,17 @@ class ColorCorrector(Node):
         self.camera = declare(self, 'camera', ns_camera or 'cam0', 'camera name in the calibration', read_only=True)
         self.passthrough = declare(self, 'passthrough', True,
                                    'publish uncorrected images while there is no colour model (false: drop them)')
+        neural_models = declare(self, 'neural_models', '',
+                                'volcap harmonise output folder: apply its neural mapping for this camera instead of '
+                                'the calibration\'s colour model ("" = off)', read_only=True)
         self.diagnostics = Diagnostics(self, f'colour corrector {self.camera}')
         self.corrector: ImageCorrector | None = None
         self._buffer: np.ndarray | None = None
         self.model_text = 'none'
+        self.neural = False
+        self.neural_problem = ''
+        if neural_models:
+            self._load_neural(Path(neural_models) / f'{self.camera}.lut.npz')
         self.corrected = self.passed = self.skipped = 0
         self.ms: list[float] = []
         self.pub = self.create_publisher(Image, topics.COLOR_CORRECTED, qos.DRIVER)
@@ -47,7 +60,22 @@ class ColorCorrector(Node):
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'color_corrector started for {self.camera}')
 
+    def _load_neural(self, path: Path) -> None:
+        try:
+            lut = RegionLut.load(path)
+        except ValueError as e:
+            self.neural_problem = f'neural mapping not used, falling back to the calibration: {e}'
+            self.diagnostics.report('error', self.neural_problem)
+            return
+        self.corrector, self.neural = ImageCorrector(lut), True
+        n, (nx, ny) = lut.table.shape[0], lut.grid
+        self.model_text = f'neural (region LUT {n}^3 x {nx}x{ny}, {path.parent})'
+        self.get_logger().info(f'{self.camera}: colour model {self.model_text}')
+
     def _on_calibration(self, msg: String) -> None:
+        if self.neural:
+            self.get_logger().info(f'{self.camera}: new calibration; keeping the neural mapping')
+            return
         try:
             calibration = Calibration.from_yaml(msg.data)
             cam = calibration.cameras.get(self.camera)
@@ -87,11 +115,14 @@ class ColorCorrector(Node):
     def _report(self) -> None:
         if self.corrector is None:
             self.diagnostics.report('warn', f'{self.camera}: no colour model yet; images are '
-                                            f'{"passed through" if self.passthrough else "dropped"}',
+                                            f'{"passed through" if self.passthrough else "dropped"}'
+                                            + (f'; {self.neural_problem}' if self.neural_problem else ''),
                                     passed=self.passed, skipped=self.skipped)
             return
         ms = float(np.median(self.ms[-100:])) if self.ms else 0.0
-        self.diagnostics.report('ok', f'{self.camera}: {self.corrected} frames corrected with {self.model_text}',
+        problem = f'; {self.neural_problem}' if self.neural_problem else ''
+        self.diagnostics.report('warn' if problem else 'ok',
+                                f'{self.camera}: {self.corrected} frames corrected with {self.model_text}{problem}',
                                 corrected=self.corrected, passed=self.passed, skipped=self.skipped,
                                 median_ms=round(ms, 2))
         self.ms = self.ms[-100:]

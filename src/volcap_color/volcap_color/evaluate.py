@@ -13,7 +13,13 @@ so), so chart-free methods are scored on pixels they were not fitted to.
   (``methods_all_pairs``): on a ring of stands the cross-stand pairs, where seams show in the
   fused model, are below the 1 % of the paper's protocol.
 - Paper 000 Table 1: per camera the mean R, G, B and I difference (0-255) of the board's chart
-  patches to the reference chart, before and after each method (needs the bag's board views).
+  patches to the reference chart, before and after each method (needs the bag's board views;
+  not for the neural methods, whose mapping depends on the pixel position, which the chart
+  samples do not keep).
+
+With ``neural`` (a ``volcap harmonise`` output folder) two more methods are scored: ``neural``,
+the per-camera networks D of paper 001, and ``neural_live``, their exported region LUTs as the
+``color_corrector`` node applies them.
 
 Methods are fitted on pairs with at least ``fit_min_fraction`` (lower than the scoring
 threshold: on a 4-stand rig only same-stand pairs reach 1 %, and the thinner cross-stand pairs
@@ -36,7 +42,7 @@ from volcap_filter.pipeline import DepthCleaner, DepthFilterConfig
 from volcap_filter.registration import DepthRegistration
 
 from .correspondence import CorrespondenceConfig, Matches, View, find_correspondences, smooth_depth
-from .methods import (Mapping, brown_lowe, chart_free_fit, fit_finlayson, fit_reinhard, fit_vandermonde, identity,
+from .methods import (Mapping, PixelMapping, apply_mapping, brown_lowe, chart_free_fit, fit_finlayson, fit_reinhard, fit_vandermonde, identity,
                       moulon, propagate)
 
 METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon', 'paper_diagonal',
@@ -131,7 +137,8 @@ def pair_scores(matches: dict[tuple[str, str], Matches], mappings: dict[str, Map
     out = {}
     for (a, b), m in matches.items():
         sel = np.arange(len(m)) if len(m) <= max_per_pair else rng.choice(len(m), max_per_pair, replace=False)
-        ca, cb = _as_8bit(mappings[a](m.colours_a[sel])), _as_8bit(mappings[b](m.colours_b[sel]))
+        ca = _as_8bit(apply_mapping(mappings[a], m.colours_a[sel], m.pixels_a[sel]))
+        cb = _as_8bit(apply_mapping(mappings[b], m.colours_b[sel], m.pixels_b[sel]))
         mse = float(np.mean((ca - cb) ** 2))
         out[f'{a}-{b}'] = {'de2000': float(delta_e2000(ca, cb).mean()),
                            'psnr': float(10 * np.log10(1.0 / max(mse, 1e-12))), 'n': len(m)}
@@ -158,7 +165,7 @@ def chart_table(samples: dict[str, tuple[np.ndarray, np.ndarray]], mapping: dict
     differences (0-255) of the mapped chart patches to the reference, and their CIEDE2000."""
     out = {}
     for c, (measured, target) in samples.items():
-        if c not in mapping or not len(measured):
+        if c not in mapping or not len(measured) or isinstance(mapping[c], PixelMapping):
             continue
         after = _as_8bit(mapping[c](measured))
         d = component_differences(after, target)
@@ -201,8 +208,26 @@ def method_mappings(fit: dict[tuple[str, str], Matches], cameras: list[str], cal
     return out, skipped, models
 
 
+def neural_mappings(models_dir: str | Path, views: list[View], cameras: list[str]
+                    ) -> tuple[dict[str, dict[str, PixelMapping]], dict, dict]:
+    """The ``neural`` (networks D) and ``neural_live`` (region LUTs) mappings of a ``volcap
+    harmonise`` folder, its manifest and the LUTs."""
+    from .apply import RegionLut
+    from .neural import load_harmonisation
+    harm = load_harmonisation(models_dir)
+    missing = [c for c in cameras if c not in harm.mappers]
+    if missing:
+        raise ValueError(f'{models_dir} has no networks for {", ".join(missing)}')
+    sizes = {v.name: (v.camera.width, v.camera.height) for v in views}
+    luts = {c: RegionLut.load(Path(models_dir) / f'{c}.lut.npz') for c in cameras}
+    net = {c: PixelMapping(lambda rgb, xy, c=c: harm.map_colours(c, rgb, xy), sizes[c]) for c in cameras}
+    live = {c: PixelMapping(luts[c].apply_points, sizes[c]) for c in cameras}
+    return {'neural': net, 'neural_live': live}, harm.report, luts
+
+
 def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: dict | None = None,
-                    cfg: ColourEvalConfig = ColourEvalConfig(), progress: bool = True) -> tuple[dict, dict]:
+                    cfg: ColourEvalConfig = ColourEvalConfig(), progress: bool = True,
+                    neural: str | Path | None = None) -> tuple[dict, dict]:
     """(report, extras): the report as documented in the README; extras hold the first scored
     frame set's views and every method's mappings, for figures."""
     sets = capture_views(bag, calibration, cfg.frames, progress)
@@ -217,6 +242,14 @@ def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: di
     thin = merge_matches(scored_sets, cfg.fit_min_fraction)
     scored_keys = {f'{a}-{b}' for a, b in scored}
     mappings, skipped, models = method_mappings(fit, cameras, calibration, chart_samples, cfg)
+    neural_info, luts = None, {}
+    if neural is not None:
+        extra, manifest, luts = neural_mappings(neural, [v for views in sets for v in views], cameras)
+        mappings.update(extra)
+        trained = manifest.get('frame_sets', {}).get('trained', [])
+        neural_info = {'models': str(neural), 'trained_on': trained, 'reference': manifest['reference'],
+                       'scored_sets_trained_on': sorted(set(trained) & set(score_idx)),
+                       'export_error': manifest.get('export_error', {})}
     methods, all_pairs, pairs, table1 = {}, {}, {}, {}
     for name in tqdm(mappings, desc='scoring methods', unit='method', disable=not progress):
         pairs[name] = pair_scores(thin, mappings[name], cfg.max_scored_per_pair, cfg.seed)
@@ -229,10 +262,10 @@ def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: di
               'methods': methods, 'methods_all_pairs': all_pairs, 'skipped': skipped, 'pairs': pairs,
               'correspondences': {'fit_pairs': {f'{a}-{b}': len(m) for (a, b), m in fit.items()},
                                   'scored_pairs': {f'{a}-{b}': len(m) for (a, b), m in scored.items()}},
-              'table1': table1,
+              'table1': table1, 'neural': neural_info,
               'models': {name: {c: m.to_dict() for c, m in per.items()} for name, per in models.items()},
               'config': asdict(cfg)}
-    return report, {'views': sets[score_idx[0]], 'mappings': mappings, 'models': models}
+    return report, {'views': sets[score_idx[0]], 'mappings': mappings, 'models': models, 'region_luts': luts}
 
 
 def format_report(report: dict) -> str:
@@ -266,4 +299,9 @@ def format_report(report: dict) -> str:
                          + ' | '.join(f'{ab[k]:.2f}' for k in 'RGBI') + f' | {de:.2f} |')
     held = 'held-out frame sets' if report['frame_sets']['held_out'] else 'the frame set the methods were fitted on'
     lines += ['', f"Scored on {held}: {report['frame_sets']['scored']}."]
+    neural = report.get('neural')
+    if neural:
+        lines.append(f"neural: trained on frame sets {neural['trained_on']}, reference {neural['reference']}"
+                     + (f"; WARNING: also trained on scored frame sets {neural['scored_sets_trained_on']}"
+                        if neural['scored_sets_trained_on'] else ''))
     return '\n'.join(lines)

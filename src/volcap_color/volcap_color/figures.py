@@ -26,7 +26,7 @@ def bars_figure(path: str | Path, report: dict) -> Path:
     for ax, key, label in ((axes[0], 'de2000', 'CIEDE2000 (lower is better)'), (axes[1], 'psnr', 'PSNR dB (higher is better)')):
         means = [report['methods'][n][f'{key}_mean'] for n in names]
         stds = [report['methods'][n][f'{key}_std'] for n in names]
-        colours = ['tab:green' if n.startswith('volcap') else 'tab:grey' if n == 'original' else 'tab:blue' for n in names]
+        colours = ['tab:green' if n.startswith(('volcap', 'neural')) else 'tab:grey' if n == 'original' else 'tab:blue' for n in names]
         ax.bar(np.arange(len(names)), means, yerr=stds, color=colours, capsize=3)
         ax.set_xticks(np.arange(len(names)), names, rotation=40, ha='right', fontsize=8)
         ax.set_title(label)
@@ -60,13 +60,38 @@ def image_grid(path: str | Path, views: list[View], rows: dict[str, dict]) -> Pa
     return Path(path)
 
 
-def write_colour_figures(out_dir: str | Path, report: dict, views: list[View], mappings: dict, models: dict
-                         ) -> list[Path]:
-    """colour_methods.png (bars) and colour_images.png (original and our methods per camera)."""
+def write_colour_figures(out_dir: str | Path, report: dict, views: list[View], mappings: dict, models: dict,
+                         region_luts: dict | None = None) -> list[Path]:
+    """colour_methods.png (bars) and colour_images.png (original, our methods and, given its
+    region LUTs, the neural method's live form per camera)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = {'original': mappings['original']}
     for name in ('volcap_chart', 'volcap_chart_free', 'volcap_chart_harmonised'):
         if name in mappings:
             rows[name] = models.get(name) or mappings[name]
+    if region_luts:
+        rows['neural_live'] = region_luts
     return [bars_figure(out_dir / 'colour_methods.png', report), image_grid(out_dir / 'colour_images.png', views, rows)]
+
+
+def training_figure(path: str | Path, report: dict) -> Path:
+    """Loss per epoch of E and of every camera's D (``volcap harmonise``'s manifest)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    field = report['field']['losses']
+    axes[0].semilogy(np.arange(1, len(field) + 1), np.sqrt(field) * 255.0)
+    axes[0].set_title(f"E (colour field): {report['field_samples']} samples, {report['field']['seconds']:.0f} s")
+    for cam, r in report['mappers'].items():
+        axes[1].semilogy(np.arange(1, len(r['losses']) + 1), np.sqrt(r['losses']) * 255.0, label=cam)
+    axes[1].set_title(f"D per camera, reference {report['reference']}")
+    axes[1].legend(fontsize=7, ncol=2)
+    for ax in axes:
+        ax.set_xlabel('epoch')
+        ax.set_ylabel('RMS error, levels')
+        ax.grid(alpha=0.3, which='both')
+    out = save_figure(fig, path)
+    plt.close(fig)
+    return out

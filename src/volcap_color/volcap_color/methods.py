@@ -16,6 +16,7 @@ paper 001 compares against, each as a per-camera mapping sRGB (N, 3) in [0, 1] -
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import colour
@@ -28,6 +29,23 @@ from volcap_calib.colour import ColourModel, srgb_to_linear
 from .correspondence import Matches
 
 Mapping = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass
+class PixelMapping:
+    """A mapping that also depends on where the pixel is (the neural D and its live form):
+    ``apply(rgb, xy)`` with xy the pixel centre over the image size, in [0, 1]."""
+    apply: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    size: tuple[int, int]          # (width, height) of the camera's image
+
+    def __call__(self, rgb: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """sRGB (N, 3) at pixel coordinates (N, 2; x y, integers at pixel centres)."""
+        xy = (np.asarray(pixels, np.float64) + 0.5) / np.asarray(self.size, np.float64)
+        return self.apply(rgb, xy)
+
+
+def apply_mapping(mapping: Mapping | PixelMapping, rgb: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    return mapping(rgb, pixels) if isinstance(mapping, PixelMapping) else mapping(rgb)
 CHART_FREE_MODELS = ('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4')
 
 
