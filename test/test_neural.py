@@ -141,6 +141,17 @@ def test_training_is_deterministic_and_resumes_from_its_checkpoint(tmp_path):
     assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), c.state_dict().values()))
 
 
+def test_harmonise_resumes_after_the_networks_it_finished(trained):
+    sets, harm, out = trained
+    again = harmonise(sets[:1], list(GAINS), TINY, out, resume=True, progress=False)
+    assert again.report['field'] == harm.report['field'] and again.report['mappers'] == harm.report['mappers']
+    for a, b in [(harm.field, again.field)] + [(harm.mappers[c], again.mappers[c]) for c in GAINS]:
+        assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
+    from dataclasses import replace
+    with pytest.raises(ValueError, match='other settings'):
+        harmonise(sets[:1], list(GAINS), replace(TINY, field_epochs=61), out, resume=True, progress=False)
+
+
 def test_harmonise_rejects_an_unknown_reference(tmp_path):
     with pytest.raises(ValueError, match='reference'):
         harmonise(_sets(1), list(GAINS), HarmoniseConfig(reference='cam9'), tmp_path, progress=False)

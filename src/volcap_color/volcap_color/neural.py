@@ -294,6 +294,16 @@ def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> ColourField:
                        cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
 
 
+def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.device) -> dict | None:
+    """With ``resume``, a network an interrupted run already finished (same settings), else None."""
+    if not resume or not path.exists():
+        return None
+    saved = torch.load(path, map_location=device, weights_only=False)
+    if saved.get('config') != asdict(cfg) or 'result' not in saved:
+        raise ValueError(f'--resume: {path} was trained with other settings; use a new --out or leave out --resume')
+    return saved
+
+
 def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseConfig, out_dir: str | Path,
               resume: bool = False, progress: bool = True) -> Harmonisation:
     """Train E on every training view, then each camera's D against E's reference colour; the
@@ -317,10 +327,18 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     samples = training_samples(train_sets, cameras, cfg.points, cfg.seed)
     t = lambda a: torch.as_tensor(a, device=device)
     field_model = _field_for(samples, cfg).to(device)
-    field_result = train(field_model, (t(samples.points), t(samples.centres)), t(samples.colours),
-                         epochs=cfg.field_epochs, batch=cfg.field_batch, lr=cfg.field_lr, lr_final=cfg.field_lr_final,
-                         seed=cfg.seed, bf16=bf16, label='E (colour field)', checkpoint=checkpoint, progress=progress)
-    _save_atomic({'state': field_model.state_dict(), 'config': asdict(cfg)}, out_dir / FIELD_FILE)
+    done = _finished(out_dir / FIELD_FILE, cfg, resume, device)
+    if done:
+        field_model.load_state_dict(done['state'])
+        field_result = TrainResult(**done['result'])
+    else:
+        field_result = train(field_model, (t(samples.points), t(samples.centres)), t(samples.colours),
+                             epochs=cfg.field_epochs, batch=cfg.field_batch, lr=cfg.field_lr,
+                             lr_final=cfg.field_lr_final, seed=cfg.seed, bf16=bf16, label='E (colour field)',
+                             checkpoint=checkpoint, progress=progress)
+        _save_atomic({'state': field_model.state_dict(), 'config': asdict(cfg), 'result': asdict(field_result)},
+                     out_dir / FIELD_FILE)
+    field_model.eval()
 
     names = cameras if cfg.reference == 'mean' else [cfg.reference]
     ref_centres = np.stack([centres[c] for c in names])
@@ -331,14 +349,21 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         pixels = training_samples([[v for v in views if v.name == cam] for views in train_sets], cameras, None, 0)
         order = np.random.default_rng(cfg.seed + 1 + i).permutation(len(pixels))
         mine = pixels.select(order[:cfg.mapper_points])
-        target = reference_colour(field_model, t(mine.points), ref_centres, bf16)
         torch.manual_seed(cfg.seed + 1 + i)
         mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers).to(device)
-        mapper_results[cam] = train(mapper, (t(mine.colours), t(mine.xy)), target, epochs=cfg.mapper_epochs,
-                                    batch=cfg.mapper_batch, lr=cfg.mapper_lr, lr_final=cfg.mapper_lr_final,
-                                    seed=cfg.seed + 1 + i, bf16=bf16, label=f'D {cam}', checkpoint=checkpoint,
-                                    progress=progress)
-        _save_atomic({'state': mapper.state_dict(), 'config': asdict(cfg)}, out_dir / f'{cam}.mapper.pt')
+        done = _finished(out_dir / f'{cam}.mapper.pt', cfg, resume, device)
+        if done:
+            mapper.load_state_dict(done['state'])
+            mapper_results[cam] = TrainResult(**done['result'])
+        else:
+            target = reference_colour(field_model, t(mine.points), ref_centres, bf16)
+            mapper_results[cam] = train(mapper, (t(mine.colours), t(mine.xy)), target, epochs=cfg.mapper_epochs,
+                                        batch=cfg.mapper_batch, lr=cfg.mapper_lr, lr_final=cfg.mapper_lr_final,
+                                        seed=cfg.seed + 1 + i, bf16=bf16, label=f'D {cam}', checkpoint=checkpoint,
+                                        progress=progress)
+            _save_atomic({'state': mapper.state_dict(), 'config': asdict(cfg), 'result': asdict(mapper_results[cam])},
+                         out_dir / f'{cam}.mapper.pt')
+        mapper.eval()
         mappers[cam] = mapper
         fits[cam] = len(mine)
         rest = order[cfg.mapper_points:cfg.mapper_points + HELD_OUT]
