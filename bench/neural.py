@@ -89,8 +89,8 @@ def main() -> int:
     m = cfg.mapper_batch
     d_bare = bare_step_ms(CaptureMapper(cfg.mapper_width, cfg.mapper_layers), (torch.rand(m, 3), torch.rand(m, 2)),
                           torch.rand(m, 3), bf16)
-    result['mappers'] = {'cameras': len(manifest['mappers']), 'seconds': d_seconds, 'step_ms': d_seconds / d_steps * 1e3,
-                         'bare_step_ms': d_bare}
+    result['mappers'] = {'cameras': len(manifest['mappers']), 'seconds': d_seconds,
+                         'step_ms': d_seconds / d_steps * 1e3, 'bare_step_ms': d_bare}
     result['harmonise_seconds'] = manifest.get('seconds')
     print(f"E: {result['field']['samples']} samples x {result['field']['epochs']} epochs, {field['seconds']:.0f} s; "
           f"{e_step:.1f} ms per step vs bare torch step {e_bare:.1f} ms ({e_step / e_bare:.2f}x); "

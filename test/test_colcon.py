@@ -48,7 +48,7 @@ def test_every_package_is_ament_python_format_3():
         cfg = configparser.ConfigParser()
         cfg.read(REPO / 'src' / pkg / 'setup.cfg')
         assert cfg['install']['install_scripts'] == f'$base/lib/{pkg}'
-        assert "extras_require={'test': ['pytest']}" in (REPO / 'src' / pkg / 'setup.py').read_text()
+        assert re.search(r"extras_require=\{'test': \['pytest'\][,}]", (REPO / 'src' / pkg / 'setup.py').read_text())
 
 
 def test_install_layout(install):

@@ -102,11 +102,13 @@ def harmonise_config(args):
     except ValueError:
         raise ValueError(f'--lut-grid is NXxNY, for example 9x5, not {args.lut_grid!r}') from None
     keys = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points', 'mapper_epochs',
-            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'reference', 'lut_colours', 'seed', 'device', 'precision')
+            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference', 'lut_colours', 'seed', 'device', 'precision')
     cfg = HarmoniseConfig(**{k: getattr(args, k) for k in keys}, lut_grid=(nx, ny))
     for k in ('points', 'field_epochs', 'field_batch', 'mapper_points', 'mapper_epochs', 'mapper_batch'):
         if getattr(cfg, k) < 1:
             raise ValueError(f'--{k.replace("_", "-")} must be at least 1')
+    if not 0 <= cfg.background <= 4:
+        raise ValueError('--background must be between 0 and 4')
     if cfg.lut_colours < 2 or nx < 2 or ny < 2:
         raise ValueError('--lut-colours and both --lut-grid sizes must be at least 2')
     return cfg
@@ -197,6 +199,9 @@ def add_parsers(sub, eval_sub) -> None:
     h.add_argument('--mapper-batch', type=int, default=d.mapper_batch)
     h.add_argument('--mapper-lr', type=float, default=d.mapper_lr)
     h.add_argument('--mapper-lr-final', type=float, default=d.mapper_lr_final)
+    h.add_argument('--background', type=float, default=d.background,
+                   help='pixels without a surface point added to each D, per pixel with one, aimed at the camera\'s '
+                        'affine map onto the reference (0: the paper, D sees the subject only)')
     h.add_argument('--reference', default=d.reference, help='camera whose colours D reproduces, or mean (E '
                                                             'averaged over every camera)')
     h.add_argument('--lut-colours', type=int, default=d.lut_colours, help='live form: colour nodes per axis')

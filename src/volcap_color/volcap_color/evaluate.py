@@ -18,8 +18,9 @@ so), so chart-free methods are scored on pixels they were not fitted to.
   samples do not keep).
 
 With ``neural`` (a ``volcap harmonise`` output folder) two more methods are scored: ``neural``,
-the per-camera networks D of paper 001, and ``neural_live``, their exported region LUTs as the
-``color_corrector`` node applies them.
+the per-camera networks D of paper 001, and ``neural_live``, their exported region LUTs (the
+same interpolation as the ``color_corrector`` node's integer kernel, in float: the kernel is
+within a level of it).
 
 Methods are fitted on pairs with at least ``fit_min_fraction`` (lower than the scoring
 threshold: on a 4-stand rig only same-stand pairs reach 1 %, and the thinner cross-stand pairs
@@ -42,8 +43,8 @@ from volcap_filter.pipeline import DepthCleaner, DepthFilterConfig
 from volcap_filter.registration import DepthRegistration
 
 from .correspondence import CorrespondenceConfig, Matches, View, find_correspondences, smooth_depth
-from .methods import (Mapping, PixelMapping, apply_mapping, brown_lowe, chart_free_fit, fit_finlayson, fit_reinhard, fit_vandermonde, identity,
-                      moulon, propagate)
+from .methods import (Mapping, PixelMapping, apply_mapping, brown_lowe, chart_free_fit, fit_finlayson, fit_reinhard,
+                      fit_vandermonde, identity, moulon, propagate)
 
 METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon', 'paper_diagonal',
            'volcap_chart', 'volcap_chart_free', 'volcap_chart_harmonised')

@@ -29,6 +29,7 @@ from volcap_calib.colour import ColourModel, srgb_to_linear
 from .correspondence import Matches
 
 Mapping = Callable[[np.ndarray], np.ndarray]
+CHART_FREE_MODELS = ('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4')
 
 
 @dataclass
@@ -46,7 +47,6 @@ class PixelMapping:
 
 def apply_mapping(mapping: Mapping | PixelMapping, rgb: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return mapping(rgb, pixels) if isinstance(mapping, PixelMapping) else mapping(rgb)
-CHART_FREE_MODELS = ('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4')
 
 
 def identity(rgb: np.ndarray) -> np.ndarray:

@@ -236,7 +236,7 @@ def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tens
         result.steps += steps_per_epoch
         if checkpoint is not None:
             _save_atomic({'label': label, 'model': model.state_dict(), 'optimiser': optimiser.state_dict(),
-                          'schedule': schedule.state_dict(), 'losses': result.losses, 'seconds': result.seconds, 'steps': result.steps}, checkpoint)
+                          'schedule': schedule.state_dict(), **asdict(result)}, checkpoint)
     bar.close()
     model.eval()
     return result
@@ -294,6 +294,30 @@ def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> ColourField:
                        cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
 
 
+def _with_background(views: list[View], mine: SurfaceSamples, target: torch.Tensor, count: int,
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+    """D's training inputs and targets with ``count`` pixels that have no surface point (the
+    background the cleaning removed) added, each aimed at the camera's affine colour map onto
+    E's reference fitted on ``mine``: E knows nothing there, and without them D's output on
+    colours and image regions it never saw (the room round the subject) is arbitrary."""
+    empty = [(v, np.flatnonzero(v.depth.reshape(-1) <= 0)) for v in views]
+    total = sum(len(idx) for _, idx in empty)
+    if count <= 0 or total == 0:
+        return mine.colours, mine.xy, target
+    colours, xy = [], []
+    for v, idx in empty:
+        pick = rng.choice(idx, min(len(idx), max(1, count * len(idx) // total)), replace=False)
+        y, x = np.divmod(pick, v.depth.shape[1])
+        colours.append(v.color.reshape(-1, 3)[pick].astype(np.float32) / 255.0)
+        xy.append(np.stack([(x + 0.5) / v.depth.shape[1], (y + 0.5) / v.depth.shape[0]], axis=1).astype(np.float32))
+    colours, xy = np.concatenate(colours), np.concatenate(xy)
+    design = np.hstack([mine.colours, np.ones((len(mine), 1), np.float32)])
+    affine = np.linalg.lstsq(design, target.cpu().numpy(), rcond=None)[0]
+    aimed = np.clip(np.hstack([colours, np.ones((len(colours), 1), np.float32)]) @ affine, 0.0, 1.0)
+    return (np.concatenate([mine.colours, colours]), np.concatenate([mine.xy, xy]),
+            torch.cat([target, torch.as_tensor(aimed.astype(np.float32), device=target.device)]))
+
+
 def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.device) -> dict | None:
     """With ``resume``, a network an interrupted run already finished (same settings), else None."""
     if not resume or not path.exists():
@@ -346,8 +370,10 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     for i, cam in enumerate(cameras):
         # every pixel with depth, shuffled: D trains on the first mapper_points and is checked on
         # (up to HELD_OUT of) the rest
-        pixels = training_samples([[v for v in views if v.name == cam] for views in train_sets], cameras, None, 0)
-        order = np.random.default_rng(cfg.seed + 1 + i).permutation(len(pixels))
+        own = [v for views in train_sets for v in views if v.name == cam]
+        pixels = training_samples([own], cameras, None, 0)
+        rng = np.random.default_rng(cfg.seed + 1 + i)
+        order = rng.permutation(len(pixels))
         mine = pixels.select(order[:cfg.mapper_points])
         torch.manual_seed(cfg.seed + 1 + i)
         mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers).to(device)
@@ -357,7 +383,8 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
             mapper_results[cam] = TrainResult(**done['result'])
         else:
             target = reference_colour(field_model, t(mine.points), ref_centres, bf16)
-            mapper_results[cam] = train(mapper, (t(mine.colours), t(mine.xy)), target, epochs=cfg.mapper_epochs,
+            rgb, xy, target = _with_background(own, mine, target, int(cfg.background * len(mine)), rng)
+            mapper_results[cam] = train(mapper, (t(rgb), t(xy)), target, epochs=cfg.mapper_epochs,
                                         batch=cfg.mapper_batch, lr=cfg.mapper_lr, lr_final=cfg.mapper_lr_final,
                                         seed=cfg.seed + 1 + i, bf16=bf16, label=f'D {cam}', checkpoint=checkpoint,
                                         progress=progress)

@@ -21,6 +21,7 @@ class HarmoniseConfig:
     mapper_lr_final: float | None = None
     mapper_width: int = 128
     mapper_layers: int = 8
+    background: float = 0.25         # D's extra samples without a surface point, per sample with one (ours)
     reference: str = 'mean'          # a camera name, or 'mean' (E averaged over every camera)
     lut_colours: int = 17            # live form: colour nodes per axis ...
     lut_grid: tuple[int, int] = (9, 5)   # ... and image nodes (x, y)
