@@ -42,7 +42,7 @@ from .neural_config import HarmoniseConfig
 CHECKPOINT = 'checkpoint.pt'
 FIELD_FILE = 'field.pt'
 MANIFEST = 'manifest.json'
-HELD_OUT = 20_000        # pixels per camera that D does not train on, to check it against E
+HELD_OUT = 20_000        # at most this many pixels per camera are kept from D's training to check it
 
 
 def positional_encoding(v: torch.Tensor, frequencies: int) -> torch.Tensor:
@@ -368,13 +368,14 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     ref_centres = np.stack([centres[c] for c in names])
     mappers, mapper_results, fits, held_out = {}, {}, {}, {}
     for i, cam in enumerate(cameras):
-        # every pixel with depth, shuffled: D trains on the first mapper_points and is checked on
-        # (up to HELD_OUT of) the rest
+        # every pixel with depth, shuffled: a tenth (at most HELD_OUT) is kept back to check D
+        # against E, D trains on up to mapper_points of the rest
         own = [v for views in train_sets for v in views if v.name == cam]
         pixels = training_samples([own], cameras, None, 0)
         rng = np.random.default_rng(cfg.seed + 1 + i)
         order = rng.permutation(len(pixels))
-        mine = pixels.select(order[:cfg.mapper_points])
+        n_held = min(HELD_OUT, len(pixels) // 10)
+        mine = pixels.select(order[n_held:n_held + cfg.mapper_points])
         torch.manual_seed(cfg.seed + 1 + i)
         mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers).to(device)
         done = _finished(out_dir / f'{cam}.mapper.pt', cfg, resume, device)
@@ -393,9 +394,8 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         mapper.eval()
         mappers[cam] = mapper
         fits[cam] = len(mine)
-        rest = order[cfg.mapper_points:cfg.mapper_points + HELD_OUT]
-        if len(rest):
-            held_out[cam] = _mapper_error(field_model, mapper, pixels.select(rest), ref_centres, bf16)
+        if n_held:
+            held_out[cam] = _mapper_error(field_model, mapper, pixels.select(order[:n_held]), ref_centres, bf16)
     checkpoint.unlink(missing_ok=True)
     report = {
         'cameras': cameras, 'reference': cfg.reference, 'device': str(device), 'bf16': bf16,

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 @dataclass
 class HarmoniseConfig:
-    points: int = 200_000            # surface samples for E, shared evenly by the training views
+    points: int = 180_000            # surface samples for E, shared evenly by the training views
     field_epochs: int = 100
     field_batch: int = 5000
     field_lr: float = 1e-4
@@ -14,7 +14,7 @@ class HarmoniseConfig:
     field_width: int = 256
     point_frequencies: int = 10
     camera_frequencies: int = 4
-    mapper_points: int = 100_000     # pixels per camera for its D
+    mapper_points: int = 80_000      # pixels per camera for its D
     mapper_epochs: int = 20
     mapper_batch: int = 1000
     mapper_lr: float = 1e-4
