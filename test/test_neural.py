@@ -12,8 +12,7 @@ from volcap_bringup.cli import main
 from volcap_calib.colour import linear_to_srgb
 from volcap_color.apply import ImageCorrector, RegionLut
 from volcap_color.correspondence import View, match_pair
-from volcap_color.neural import (CaptureMapper, bake_region_lut, export_error, harmonise, load_harmonisation, train,
-                                 training_samples)
+from volcap_color.neural import CaptureMapper, bake_region_lut, export_error, harmonise, load_harmonisation, train
 from volcap_color.neural_config import HarmoniseConfig
 from volcap_core.camera import CameraModel
 from volcap_core.poses import look_at
@@ -72,12 +71,12 @@ def trained(tmp_path_factory):
 def test_training_lowers_the_loss_and_d_reproduces_e_on_held_out_pixels(trained):
     sets, harm, _ = trained
     field = harm.report['field']['losses']
-    assert len(field) == TINY.field_epochs and field[-1] < 0.25 * field[0]
+    assert len(field) == TINY.field_epochs and field[-1] < 0.01 * field[0]
     for cam in GAINS:
         losses = harm.report['mappers'][cam]['losses']
-        assert losses[-1] < 0.5 * losses[0]
+        assert losses[-1] < 0.01 * losses[0]
         err = harm.report['mapper_error'][cam]          # pixels of the training frame D did not train on
-        assert err['pixels'] > 100 and err['rms_levels'] < 4.0, (cam, err)
+        assert err['pixels'] > 100 and err['rms_levels'] < 3.0, (cam, err)
     # D brings the cameras' different gains to the reference: on the second (unseen) frame the
     # mapped colours of corresponding pixels agree much better than the raw ones
     for a, b in ((0, 1), (0, 2)):
@@ -88,7 +87,7 @@ def test_training_lowers_the_loss_and_d_reproduces_e_on_held_out_pixels(trained)
         xy_b = (m.pixels_b + 0.5) / (vb.camera.width, vb.camera.height)
         raw = np.abs(m.colours_a - m.colours_b).mean()
         mapped = np.abs(harm.map_colours(va.name, m.colours_a, xy_a) - harm.map_colours(vb.name, m.colours_b, xy_b))
-        assert mapped.mean() < 0.4 * raw, (va.name, vb.name, mapped.mean(), raw)
+        assert mapped.mean() < 0.3 * raw, (va.name, vb.name, mapped.mean(), raw)
 
 
 def test_live_region_lut_matches_d(trained):
@@ -96,7 +95,7 @@ def test_live_region_lut_matches_d(trained):
     for cam in GAINS:
         lut = bake_region_lut(harm, cam)
         err = export_error(harm, cam, lut, [v.color for v in sets[1] if v.name == cam])
-        assert err['mean_levels'] < 1.0 and err['p99_levels'] <= 4, (cam, err)
+        assert err['mean_levels'] < 0.6 and err['p99_levels'] <= 3, (cam, err)
     # the uint8 kernel and the float interpolation used for scoring are the same function
     rng = np.random.default_rng(3)
     image = rng.integers(0, 256, (30, 50, 3), dtype=np.uint8)
@@ -136,6 +135,9 @@ def test_training_is_deterministic_and_resumes_from_its_checkpoint(tmp_path):
     ck = tmp_path / 'checkpoint.pt'
     _, first = run(2, ck)                  # "interrupted" after two epochs
     assert ck.exists() and len(first.losses) == 2
+    with pytest.raises(ValueError, match='other settings'):
+        train(CaptureMapper(16, 3), (x, xy), y, epochs=4, batch=100, lr=3e-3, seed=9, bf16=False, label='D test',
+              checkpoint=ck, settings={'mapper_width': 32}, progress=False)
     c, rc = run(4, ck)                     # a fresh model resumes from the checkpoint
     assert rc.losses == pytest.approx(ra.losses, rel=1e-6)
     assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), c.state_dict().values()))

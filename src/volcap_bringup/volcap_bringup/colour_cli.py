@@ -96,13 +96,14 @@ def cmd_colour_fit(args) -> int:
 
 
 def harmonise_config(args):
-    from volcap_color.neural import HarmoniseConfig
+    from volcap_color.neural_config import HarmoniseConfig
     try:
         nx, ny = (int(v) for v in args.lut_grid.lower().split('x'))
     except ValueError:
         raise ValueError(f'--lut-grid is NXxNY, for example 9x5, not {args.lut_grid!r}') from None
     keys = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points', 'mapper_epochs',
-            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference', 'lut_colours', 'seed', 'device', 'precision')
+            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference', 'lut_colours', 'seed',
+            'device', 'precision')
     cfg = HarmoniseConfig(**{k: getattr(args, k) for k in keys}, lut_grid=(nx, ny))
     for k in ('points', 'field_epochs', 'field_batch', 'mapper_points', 'mapper_epochs', 'mapper_batch'):
         if getattr(cfg, k) < 1:
@@ -115,7 +116,7 @@ def harmonise_config(args):
 
 
 def cmd_harmonise(args) -> int:
-    from volcap_color.evaluate import cameras_in, capture_views
+    from volcap_color.evaluate import cameras_in, capture_views, split_frame_sets
     from volcap_color.figures import training_figure
     from volcap_color.neural import MANIFEST, export_live, harmonise
     from volcap_core.calibration import Calibration
@@ -124,8 +125,8 @@ def cmd_harmonise(args) -> int:
     t0 = time.perf_counter()
     sets = capture_views(args.bag, calibration, args.frames, not args.quiet)
     cameras = cameras_in(sets, calibration)
-    trained = list(range(0, len(sets), 2)) if args.train_sets == 'even' and len(sets) > 1 else list(range(len(sets)))
-    checked = [i for i in range(len(sets)) if i not in trained] or trained
+    # 'even': the frame sets the colour evaluation fits on, so it scores D on frame sets it never saw
+    trained, checked = split_frame_sets(len(sets)) if args.train_sets == 'even' else (list(range(len(sets))),) * 2
     t1 = time.perf_counter()
     harm = harmonise([sets[i] for i in trained], cameras, cfg, args.out, resume=args.resume, progress=not args.quiet)
     t2 = time.perf_counter()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Callable
 
@@ -113,6 +114,13 @@ def _region_lut_kernel(image, packed, col_node, col_weight, row_node, row_weight
             out[y, x, 2] = min((((acc >> (2 * FIELD_BITS)) & mask) + rounding) >> WEIGHT_BITS, 255)
 
 
+def pixel_centres(x: np.ndarray, y: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N, 2) float32 positions of pixels (x, y) as position-dependent mappings take them: the
+    pixel centre over the image size, in [0, 1] whatever the resolution."""
+    return np.stack([(np.asarray(x, np.float64) + 0.5) / width, (np.asarray(y, np.float64) + 0.5) / height],
+                    axis=1).astype(np.float32)
+
+
 @dataclass
 class RegionLut:
     """A colour mapping that varies over the image: ``table[r, g, b, j, i]`` (0-255) is the
@@ -146,8 +154,13 @@ class RegionLut:
         nx, ny = self.grid
         coords = np.concatenate([np.clip(rgb, 0, 1).T * n, (np.clip(xy[:, 1], 0, 1) * (ny - 1))[None],
                                  (np.clip(xy[:, 0], 0, 1) * (nx - 1))[None]])
-        return np.stack([map_coordinates(self.table[..., k].astype(np.float64), coords, order=1, mode='nearest')
-                         for k in range(3)], axis=1) / 255.0
+        return np.stack([map_coordinates(c, coords, order=1, mode='nearest') for c in self._channels],
+                        axis=1) / 255.0
+
+    @cached_property
+    def _channels(self) -> list[np.ndarray]:
+        # contiguous float64 planes, made once: scoring calls apply_points for every camera pair
+        return [np.ascontiguousarray(self.table[..., k], np.float64) for k in range(3)]
 
     def save(self, path: str | Path, **metadata) -> Path:
         buf = io.BytesIO()

@@ -106,6 +106,13 @@ def capture_views(bag: str | Path, calibration: Calibration, frames: int, progre
     return sets
 
 
+def split_frame_sets(count: int) -> tuple[list[int], list[int]]:
+    """(fitted, scored) frame set indices: the 1st, 3rd, ... and the 2nd, 4th, ...; one frame set
+    is both."""
+    fit = list(range(0, count, 2))
+    return fit, list(range(1, count, 2)) or fit
+
+
 def cameras_in(sets: list[list[View]], calibration: Calibration) -> list[str]:
     """The calibration's cameras seen in any of the frame sets (one missing from a set still counts)."""
     seen = {v.name for views in sets for v in views}
@@ -235,8 +242,7 @@ def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: di
     cameras = cameras_in(sets, calibration)
     per_set = [find_correspondences(views, cfg.correspondence)
                for views in tqdm(sets, desc='correspondences', unit='set', disable=not progress)]
-    fit_idx = list(range(0, len(sets), 2))
-    score_idx = list(range(1, len(sets), 2)) or fit_idx
+    fit_idx, score_idx = split_frame_sets(len(sets))
     fit = merge_matches([per_set[i] for i in fit_idx], cfg.fit_min_fraction)
     scored_sets = [per_set[i] for i in score_idx]
     scored = merge_matches(scored_sets, cfg.eval_min_fraction)

@@ -26,6 +26,7 @@ from scipy.sparse.csgraph import shortest_path
 
 from volcap_calib.colour import ColourModel, srgb_to_linear
 
+from .apply import pixel_centres
 from .correspondence import Matches
 
 Mapping = Callable[[np.ndarray], np.ndarray]
@@ -41,8 +42,7 @@ class PixelMapping:
 
     def __call__(self, rgb: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """sRGB (N, 3) at pixel coordinates (N, 2; x y, integers at pixel centres)."""
-        xy = (np.asarray(pixels, np.float64) + 0.5) / np.asarray(self.size, np.float64)
-        return self.apply(rgb, xy)
+        return self.apply(rgb, pixel_centres(pixels[:, 0], pixels[:, 1], *self.size))
 
 
 def apply_mapping(mapping: Mapping | PixelMapping, rgb: np.ndarray, pixels: np.ndarray) -> np.ndarray:

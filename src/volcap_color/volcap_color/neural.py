@@ -14,8 +14,10 @@ mapping network D per camera, in torch.
   image size, in [0, 1], so D does not depend on the image resolution.
 
 Surface points come from the cleaned depth registered to colour (``evaluate.capture_views``).
-Defaults are the authors' published settings (DESIGN.md) except the number of sampled points,
-which bounds training time on a CPU. Training is deterministic for a seed on one device and
+Each D also sees some pixels the cleaning removed (the room), aimed at the camera's affine map
+onto the reference (``background``, ours), so its output there is not arbitrary. Defaults are
+the authors' published settings (DESIGN.md) except the sample counts, which bound training time
+on a CPU, and our ``mean`` reference and background samples. Training is deterministic for a seed on one device and
 precision; after every epoch a checkpoint is written atomically and ``resume`` carries on from
 it.
 """
@@ -35,7 +37,7 @@ from tqdm import tqdm
 
 from volcap_core.files import atomic_write
 
-from .apply import ImageCorrector, RegionLut
+from .apply import ImageCorrector, RegionLut, pixel_centres
 from .correspondence import View
 from .neural_config import HarmoniseConfig
 
@@ -105,17 +107,16 @@ class SurfaceSamples:
     points: np.ndarray      # (N, 3) float32 world
     centres: np.ndarray     # (N, 3) float32 world position of the camera that saw it
     colours: np.ndarray     # (N, 3) float32 sRGB [0, 1]
-    xy: np.ndarray          # (N, 2) float32 pixel centre / image size
-    camera: np.ndarray      # (N,) int16 index into the camera list
+    xy: np.ndarray          # (N, 2) float32 pixel centre / image size (``apply.pixel_centres``)
 
     def __len__(self) -> int:
         return len(self.points)
 
     def select(self, keep: np.ndarray) -> SurfaceSamples:
-        return SurfaceSamples(*(getattr(self, k)[keep] for k in ('points', 'centres', 'colours', 'xy', 'camera')))
+        return SurfaceSamples(*(getattr(self, k)[keep] for k in ('points', 'centres', 'colours', 'xy')))
 
 
-def view_samples(view: View, count: int | None, rng: np.random.Generator, camera_index: int = 0) -> SurfaceSamples:
+def view_samples(view: View, count: int | None, rng: np.random.Generator) -> SurfaceSamples:
     """Up to ``count`` random pixels of ``view`` with depth (all of them for None)."""
     h, w = view.depth.shape
     valid = np.flatnonzero(view.depth.reshape(-1) > 0)
@@ -125,15 +126,13 @@ def view_samples(view: View, count: int | None, rng: np.random.Generator, camera
     local = view.rays().reshape(-1, 3)[valid] * view.depth.reshape(-1)[valid, None]
     T = view.T_world_camera
     points = (local @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-    xy = np.stack([(x + 0.5) / w, (y + 0.5) / h], axis=1).astype(np.float32)
     return SurfaceSamples(points, np.broadcast_to(T[:3, 3].astype(np.float32), points.shape).copy(),
-                          view.color.reshape(-1, 3)[valid].astype(np.float32) / 255.0, xy,
-                          np.full(len(valid), camera_index, np.int16))
+                          view.color.reshape(-1, 3)[valid].astype(np.float32) / 255.0, pixel_centres(x, y, w, h))
 
 
 def concat_samples(parts: list[SurfaceSamples]) -> SurfaceSamples:
     return SurfaceSamples(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                            ('points', 'centres', 'colours', 'xy', 'camera')))
+                            ('points', 'centres', 'colours', 'xy')))
 
 
 def training_samples(sets: list[list[View]], cameras: list[str], total: int | None, seed: int) -> SurfaceSamples:
@@ -143,7 +142,7 @@ def training_samples(sets: list[list[View]], cameras: list[str], total: int | No
     if not views:
         raise ValueError('no view of the calibrated cameras to train on')
     share = None if total is None else max(1, total // len(views))
-    samples = concat_samples([view_samples(v, share, rng, cameras.index(v.name)) for v in views])
+    samples = concat_samples([view_samples(v, share, rng) for v in views])
     if not len(samples):
         raise ValueError('the training views have no pixel with depth: is the subject in view and the clean plate '
                          'learnt?')
@@ -191,11 +190,12 @@ def _save_atomic(obj, path: Path) -> None:
 
 def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tensor, *, epochs: int, batch: int,
           lr: float, seed: int, bf16: bool, label: str, lr_final: float | None = None,
-          checkpoint: Path | None = None, progress: bool = True) -> TrainResult:
+          checkpoint: Path | None = None, settings: dict | None = None, progress: bool = True) -> TrainResult:
     """Adam on the MSE of ``model(*inputs)`` against ``target``, shuffled afresh each epoch from
     ``seed``; the learning rate decays exponentially from ``lr`` to ``lr_final`` over the epochs
     (constant for None). With ``checkpoint``, the state after each epoch is saved there under
-    ``label``, and a checkpoint of the same label is resumed from."""
+    ``label`` with ``settings``, and a checkpoint of the same label is resumed from (a clear error
+    if its settings differ)."""
     device = target.device
     optimiser = torch.optim.Adam(model.parameters(), lr=lr)
     gamma = (lr_final / lr) ** (1.0 / max(epochs, 1)) if lr_final else 1.0
@@ -204,6 +204,9 @@ def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tens
     if checkpoint is not None and checkpoint.exists():
         state = torch.load(checkpoint, map_location=device, weights_only=False)
         if state['label'] == label:
+            if state.get('settings') != settings:
+                raise ValueError(f'--resume: {checkpoint} ({label}) was trained with other settings; use a new --out '
+                                 'or leave out --resume')
             model.load_state_dict(state['model'])
             optimiser.load_state_dict(state['optimiser'])
             schedule.load_state_dict(state['schedule'])
@@ -217,7 +220,7 @@ def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tens
     for epoch in range(start, epochs):
         t0 = time.perf_counter()
         order = torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100_003 + epoch)).to(device)
-        total = 0.0
+        total = torch.zeros((), device=device)    # summed on the device: no sync per step on CUDA
         for s in range(steps_per_epoch):
             idx = order[s * batch:(s + 1) * batch]
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
@@ -226,17 +229,17 @@ def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tens
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
-            total += float(loss.detach()) * len(idx)
+            total += loss.detach() * len(idx)
             bar.update()
             if s % 20 == 0:
                 bar.set_postfix(epoch=epoch + 1, loss=f"{float(loss.detach()):.2e}")
         schedule.step()
-        result.losses.append(total / n)
+        result.losses.append(float(total) / n)
         result.seconds += time.perf_counter() - t0
         result.steps += steps_per_epoch
         if checkpoint is not None:
             _save_atomic({'label': label, 'model': model.state_dict(), 'optimiser': optimiser.state_dict(),
-                          'schedule': schedule.state_dict(), **asdict(result)}, checkpoint)
+                          'schedule': schedule.state_dict(), 'settings': settings, **asdict(result)}, checkpoint)
     bar.close()
     model.eval()
     return result
@@ -307,9 +310,10 @@ def _with_background(views: list[View], mine: SurfaceSamples, target: torch.Tens
     colours, xy = [], []
     for v, idx in empty:
         pick = rng.choice(idx, min(len(idx), max(1, count * len(idx) // total)), replace=False)
-        y, x = np.divmod(pick, v.depth.shape[1])
+        h, w = v.depth.shape
+        y, x = np.divmod(pick, w)
         colours.append(v.color.reshape(-1, 3)[pick].astype(np.float32) / 255.0)
-        xy.append(np.stack([(x + 0.5) / v.depth.shape[1], (y + 0.5) / v.depth.shape[0]], axis=1).astype(np.float32))
+        xy.append(pixel_centres(x, y, w, h))
     colours, xy = np.concatenate(colours), np.concatenate(xy)
     design = np.hstack([mine.colours, np.ones((len(mine), 1), np.float32)])
     affine = np.linalg.lstsq(design, target.cpu().numpy(), rcond=None)[0]
@@ -359,7 +363,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         field_result = train(field_model, (t(samples.points), t(samples.centres)), t(samples.colours),
                              epochs=cfg.field_epochs, batch=cfg.field_batch, lr=cfg.field_lr,
                              lr_final=cfg.field_lr_final, seed=cfg.seed, bf16=bf16, label='E (colour field)',
-                             checkpoint=checkpoint, progress=progress)
+                             checkpoint=checkpoint, settings=asdict(cfg), progress=progress)
         _save_atomic({'state': field_model.state_dict(), 'config': asdict(cfg), 'result': asdict(field_result)},
                      out_dir / FIELD_FILE)
     field_model.eval()
@@ -388,7 +392,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
             mapper_results[cam] = train(mapper, (t(rgb), t(xy)), target, epochs=cfg.mapper_epochs,
                                         batch=cfg.mapper_batch, lr=cfg.mapper_lr, lr_final=cfg.mapper_lr_final,
                                         seed=cfg.seed + 1 + i, bf16=bf16, label=f'D {cam}', checkpoint=checkpoint,
-                                        progress=progress)
+                                        settings=asdict(cfg), progress=progress)
             _save_atomic({'state': mapper.state_dict(), 'config': asdict(cfg), 'result': asdict(mapper_results[cam])},
                          out_dir / f'{cam}.mapper.pt')
         mapper.eval()
@@ -458,7 +462,7 @@ def export_error(harm: Harmonisation, camera: str, lut: RegionLut, images: list[
     for img in images:
         h, w = img.shape[:2]
         ys, xs = np.mgrid[0:h, 0:w]
-        xy = np.stack([(xs.reshape(-1) + 0.5) / w, (ys.reshape(-1) + 0.5) / h], axis=1)
+        xy = pixel_centres(xs.reshape(-1), ys.reshape(-1), w, h)
         net = np.round(np.clip(harm.map_colours(camera, img.reshape(-1, 3) / 255.0, xy), 0, 1) * 255.0)
         diffs.append(np.abs(corrector(img).reshape(-1, 3).astype(np.float64) - net).reshape(-1))
     d = np.concatenate(diffs)
