@@ -11,6 +11,9 @@
     volcap eval chart PHOTO [PHOTO ...] [--json OUT.json] [--figures DIR]
     volcap eval colour BAG --calibration calibration.yaml [--json OUT.json] [--figures DIR]
     volcap colour-fit BAG --calibration calibration.yaml --out calibration_colour.yaml
+    volcap run BAG --calibration calibration.yaml --out DIR [--composed] [--voxel 0.004]
+    volcap eval fusion DIR BAG [--json OUT.json]
+    volcap fuse-frames FOLDER --intrinsics K.txt --out mesh.ply [--voxel 0.01]
     volcap demo [--out DIR]
 """
 from __future__ import annotations
@@ -23,7 +26,7 @@ from pathlib import Path
 
 from volcap_core import transport
 
-from . import calib_cli, colour_cli
+from . import calib_cli, colour_cli, fusion_cli
 
 
 def cmd_synth(args) -> int:
@@ -228,6 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     calib_cli.add_parsers(sub, esub)
     colour_cli.add_parsers(sub, esub)
+    fusion_cli.add_parsers(sub, esub)
 
     d = sub.add_parser('demo', help='the pipeline end to end on generated data')
     d.add_argument('--out', default='demo_out')

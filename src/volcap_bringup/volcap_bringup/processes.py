@@ -15,6 +15,7 @@ NODES = {
     ('volcap_filter', 'depth_filter'): 'volcap_filter.depth_filter_node',
     ('volcap_calib', 'calibration_service'): 'volcap_calib.calibration_service_node',
     ('volcap_color', 'color_corrector'): 'volcap_color.color_corrector_node',
+    ('volcap_fusion', 'tsdf_fusion'): 'volcap_fusion.tsdf_fusion_node',
 }
 
 

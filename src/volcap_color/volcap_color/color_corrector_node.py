@@ -35,8 +35,9 @@ from .apply import ImageCorrector, RegionLut
 
 
 class ColorCorrector(Node):
-    def __init__(self):
-        super().__init__('color_corrector')
+    def __init__(self, **node_options):
+        """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
+        super().__init__('color_corrector', **node_options)
         ns_camera = self.get_namespace().strip('/').split('/')[-1]
         self.camera = declare(self, 'camera', ns_camera or 'cam0', 'camera name in the calibration', read_only=True)
         self.passthrough = declare(self, 'passthrough', True,
@@ -56,7 +57,9 @@ class ColorCorrector(Node):
         self.ms: list[float] = []
         self.pub = self.create_publisher(Image, topics.COLOR_CORRECTED, qos.DRIVER)
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
-        self.create_subscription(Image, topics.COLOR_IMAGE, self._on_image, qos.SENSOR)
+        inputs = qos.EVERY_FRAME if declare(self, 'reliable', False, 'subscribe reliably (offline replay: lose no '
+                                            'frame)', read_only=True) else qos.SENSOR
+        self.create_subscription(Image, topics.COLOR_IMAGE, self._on_image, inputs)
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'color_corrector started for {self.camera}')
 

@@ -26,8 +26,9 @@ READ_AHEAD = 96   # messages: three 8-camera frame sets of colour, depth and the
 
 
 class BagPlayer(Node):
-    def __init__(self):
-        super().__init__('bag_player')
+    def __init__(self, **node_options):
+        """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
+        super().__init__('bag_player', **node_options)
         self.bag = declare(self, 'bag', '', 'rosbag2 bag directory (MCAP or sqlite3) to replay', read_only=True)
         declare(self, 'rate', 1.0, 'playback speed relative to real time (changeable while playing)', 0.01, 100.0)
         self.fast = declare(self, 'as_fast_as_possible', False, 'publish without waiting between messages')
@@ -50,6 +51,11 @@ class BagPlayer(Node):
         self._thread = threading.Thread(target=self._run, name='bag_playback', daemon=True)
         self.get_logger().info(f'bag_player started: {self.bag or "(no bag given)"}')
         self._thread.start()
+
+    @property
+    def playing(self) -> bool:
+        """False once playback has ended (or failed)."""
+        return self._thread.is_alive()
 
     def destroy_node(self):
         self._stop.set()

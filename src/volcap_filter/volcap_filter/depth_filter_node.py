@@ -72,8 +72,9 @@ PIPELINE_PARAMS = {
 
 
 class DepthFilter(Node):
-    def __init__(self):
-        super().__init__('depth_filter')
+    def __init__(self, **node_options):
+        """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
+        super().__init__('depth_filter', **node_options)
         ns_camera = self.get_namespace().strip('/').split('/')[-1]
         self.camera = declare(self, 'camera', ns_camera or 'cam0', 'camera name in the rig description',
                               read_only=True)
@@ -114,12 +115,14 @@ class DepthFilter(Node):
         self.processed = self.skipped = 0
         self.last_ms = 0.0
 
-        self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), qos.SENSOR)
-        self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), qos.SENSOR)
+        inputs = qos.EVERY_FRAME if declare(self, 'reliable', False, 'subscribe reliably (offline replay: lose no '
+                                            'frame)', read_only=True) else qos.SENSOR
+        self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), inputs)
+        self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), inputs)
         self.create_subscription(CameraInfo, topics.COLOR_INFO, lambda m: self.infos.__setitem__('color', m),
-                                 qos.SENSOR)
+                                 inputs)
         self.create_subscription(CameraInfo, topics.DEPTH_INFO, lambda m: self.infos.__setitem__('depth', m),
-                                 qos.SENSOR)
+                                 inputs)
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         self.pub_depth = self.create_publisher(Image, topics.DEPTH_CLEAN, qos.DRIVER)

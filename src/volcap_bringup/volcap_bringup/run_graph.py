@@ -1,0 +1,198 @@
+"""`volcap run`: a bag through the whole graph, as on a rig.
+
+bag_player, depth_filter and color_corrector per camera, and tsdf_fusion each run in their own
+process (``ros2 run`` style; ``composed``: all in this process on one executor). This process
+publishes the calibration (latched, as calibration_service does on a rig) and hosts
+``RendererProbe``, a subscriber standing in for a telepresence renderer: it receives every
+fused cloud and mesh and measures latency from the moment a frame set entered the graph (its
+first colour image reached the probe) to the moment its mesh arrived.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image, PointCloud2
+from std_msgs.msg import String
+from visualization_msgs.msg import Marker
+
+from volcap_core import qos, topics, transport
+from volcap_core.calibration import Calibration
+from volcap_core.conversions import pointcloud2_to_points, stamp_to_ns
+from volcap_core.files import atomic_write
+from volcap_driver.bag_io import BagReader
+from volcap_driver.frames import read_rig
+from volcap_driver.playback import cdr_stamp_ns
+
+from .processes import start_node, stop
+
+
+class RendererProbe(Node):
+    """Receives the fused output as a renderer would and times it."""
+
+    def __init__(self, camera: str, calibration: Calibration, **node_options):
+        super().__init__('volcap_renderer_probe', **node_options)
+        self.entered: dict[int, float] = {}      # stamp -> wall time its first colour image arrived here
+        self.meshes: dict[int, tuple[float, int]] = {}    # stamp -> (arrival, marker bytes)
+        self.clouds: dict[int, tuple[float, int]] = {}    # stamp -> (arrival, points)
+        self.calibration_pub = self.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
+        self.calibration_pub.publish(String(data=calibration.to_yaml()))
+        self.create_subscription(Image, topics.camera_topic(camera, topics.COLOR_IMAGE),
+                                 lambda data: self.entered.setdefault(cdr_stamp_ns(data), time.time()),
+                                 qos.SENSOR, raw=True)
+        self.create_subscription(Marker, '/' + topics.MESH, self._on_mesh, qos.EVERY_FRAME, raw=True)
+        self.create_subscription(PointCloud2, '/' + topics.FUSED_POINTS, self._on_cloud, qos.EVERY_FRAME)
+
+    def _on_mesh(self, data: bytes) -> None:
+        self.meshes[cdr_stamp_ns(data)] = (time.time(), len(data))
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        xyz, _ = pointcloud2_to_points(msg)
+        self.clouds[stamp_to_ns(msg.header.stamp)] = (time.time(), len(xyz))
+
+    def summary(self) -> dict:
+        latency = [(t - self.entered[s]) * 1000 for s, (t, _) in self.meshes.items() if s in self.entered]
+        arrivals = sorted(t for t, _ in self.meshes.values())
+        rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) > 2 else None
+        return {'meshes_received': len(self.meshes), 'clouds_received': len(self.clouds),
+                'mesh_rate_hz': rate,
+                'latency_ms_median': float(np.median(latency)) if latency else None,
+                'latency_ms_p95': float(np.percentile(latency, 95)) if latency else None,
+                'mesh_message_mb_median': float(np.median([b for _, b in self.meshes.values()]) / 1e6)
+                if self.meshes else None}
+
+
+@dataclass
+class RunConfig:
+    voxel_size: float = 0.004
+    rate: float = 0.1                 # bag playback speed; the graph must keep up with it to fuse every set
+    composed: bool = False
+    depth_upsample: int = 1
+    settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
+    fusion: dict = field(default_factory=dict)   # further tsdf_fusion parameters
+
+
+def graph_parameters(bag: Path, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str]
+                     ) -> list[tuple[str, str, str, dict]]:
+    """(package, executable, namespace, parameters) of every node of the graph."""
+    # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
+    fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True,
+              'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0, **cfg.fusion}
+    nodes = [('volcap_driver', 'bag_player', '', {'bag': str(bag), 'rate': cfg.rate, 'topics': played,
+                                                  'wait_for_subscribers': 60.0, 'exit_when_done': not cfg.composed})]
+    nodes += [('volcap_filter', 'depth_filter', c, {'reliable': True}) for c in cameras]
+    nodes += [('volcap_color', 'color_corrector', c, {'reliable': True}) for c in cameras]
+    nodes.append(('volcap_fusion', 'tsdf_fusion', '', fusion))
+    return nodes
+
+
+def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cfg: RunConfig,
+              progress: bool = True) -> dict:
+    """Replays ``bag`` through the graph; the sequence lands in ``out/frames``. Returns the
+    probe's and the nodes' figures (written to ``out/metrics.json`` by the caller)."""
+    bag, out = Path(bag), Path(out)
+    calibration = Calibration.load(calibration_path)
+    with BagReader(bag) as reader:
+        rig = read_rig(reader)
+        capture_sets = _capture_sets(reader)
+        duration = (reader.end_ns - reader.start_ns) / 1e9
+    cameras = [c for c in rig.names if c in calibration.cameras]
+    if not cameras:
+        raise ValueError(f'no camera of {bag} is in the calibration {calibration_path}')
+    frames_dir = out / 'frames'
+    if frames_dir.exists() and any(frames_dir.iterdir()):
+        raise FileExistsError(f'{frames_dir} already holds a sequence; choose another --out')
+    played = [topics.camera_topic(c, t) for c in cameras
+              for t in (topics.COLOR_IMAGE, topics.COLOR_INFO, topics.DEPTH_IMAGE, topics.DEPTH_INFO)]
+    played += [topics.RIG, topics.PHASE]
+    nodes = graph_parameters(bag, cameras, frames_dir, cfg, played)
+    transport.configure()
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    probe = RendererProbe(cameras[0], calibration)
+    executor.add_node(probe)
+    procs, hosted = [], []
+    t_start = time.monotonic()
+    try:
+        if cfg.composed:
+            hosted = [_compose(*n) for n in nodes]
+            for node in hosted:
+                executor.add_node(node)
+            player = hosted[0]
+
+            def playing():
+                return player.playing
+        else:
+            procs = [start_node(pkg, exe, params, namespace=ns) for pkg, exe, ns, params in nodes]
+
+            def playing():
+                return procs[0].poll() is None
+        deadline = time.monotonic() + 120 + duration / cfg.rate * 3
+        last_count, last_change = 0, time.monotonic()
+        from tqdm import tqdm
+        bar = tqdm(total=capture_sets, desc='fused frame sets', unit='set', disable=not progress)
+        ended = None
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            now = time.monotonic()
+            if len(probe.meshes) != last_count:
+                bar.update(len(probe.meshes) - last_count)
+                last_count, last_change = len(probe.meshes), now
+            if ended is None and not playing():
+                ended = now
+            if ended is not None and (last_count >= capture_sets or now - max(last_change, ended) > cfg.settle_s):
+                break
+        bar.close()
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:      # the last clouds still in flight
+            executor.spin_once(timeout_sec=0.05)
+    finally:
+        codes = [stop(p) for p in procs]
+        for node in hosted:
+            executor.remove_node(node)
+            node.destroy_node()
+        summary = probe.summary()
+        executor.shutdown()
+        probe.destroy_node()
+        rclpy.try_shutdown()
+    return {'mode': 'composed' if cfg.composed else 'processes', 'cameras': cameras,
+            'capture_frame_sets_in_bag': capture_sets, 'playback_rate': cfg.rate, 'voxel_size': cfg.voxel_size,
+            'wall_s': time.monotonic() - t_start, 'probe': summary,
+            'node_exit_codes': {f'{exe}{"/" + ns if ns else ""}': c for (_, exe, ns, _), c in zip(nodes, codes)}}
+
+
+def _capture_sets(reader: BagReader) -> int:
+    """Frame sets of the capture phase (stamps of the first camera's colour images in it)."""
+    import yaml
+    phases = sorted((m.stamp_ns, (yaml.safe_load(m.decode().data) or {}).get('phase'))
+                    for m in reader.messages([topics.PHASE]))
+    rig = read_rig(reader)
+    topic = topics.camera_topic(rig.names[0], topics.COLOR_IMAGE)
+    count = 0
+    for m in reader.messages([topic]):
+        phase = [p for s, p in phases if s <= m.stamp_ns]
+        count += bool(phase) and phase[-1] == topics.CAPTURE or not phases
+    return count
+
+
+def _compose(package: str, executable: str, namespace: str, params: dict) -> Node:
+    from importlib import import_module
+
+    from .processes import NODES
+    module = import_module(NODES[(package, executable)])
+    cls = {'bag_player': 'BagPlayer', 'depth_filter': 'DepthFilter', 'color_corrector': 'ColorCorrector',
+           'tsdf_fusion': 'TsdfFusionNode'}[executable]
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    return getattr(module, cls)(namespace=namespace or None, parameter_overrides=overrides)
+
+
+def write_metrics(path: Path, metrics: dict) -> None:
+    text = json.dumps(metrics, indent=2)
+    atomic_write(path, lambda f: f.write(text), binary=False)

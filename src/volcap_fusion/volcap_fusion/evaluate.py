@@ -1,0 +1,194 @@
+"""Scores of fused sequences and the fusion of posed RGB-D frame folders.
+
+`volcap eval fusion DIR BAG`: each fused frame of ``DIR/frames`` is matched by capture stamp
+to the synthetic bag's ground truth, and scored against the subject mesh at that instant:
+
+- accuracy: mean distance (mm) from the fused mesh's vertices to the ground-truth surface;
+- completeness: the fraction of the *observable* ground-truth surface within 5 mm of the fused
+  mesh. Observable means that at least one camera's depth sensor sees the point (inside its
+  image and range, not occluded, not at a grazing angle beyond what the sensor measures) and
+  the point lies in that camera's colour image (the cleaned depth is registered to colour). The
+  synthetic subject is a union of overlapping solids whose inner faces no camera can see, and
+  the soles rest on the floor; ``completeness_all`` scores the whole mesh for reference.
+
+`volcap fuse-frames FOLDER`: the ``frame-NNNNNN.{color.png,depth.png,pose.txt}`` layout (one
+moving camera, e.g. ``../shared/data/rgbd_box``) fused with ``TsdfFusion``, plus a bare Open3D
+integration of the same frames for comparison.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+from tqdm import tqdm
+
+from volcap_core.camera import CameraModel
+from volcap_core.poses import invert
+
+from .sequence import read_manifest, read_ply
+from .tsdf import CameraView, FusedModel, FusionConfig, TsdfFusion, crop_to_box
+
+COMPLETENESS_MM = 5.0
+
+
+def _scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+    return scene
+
+
+def surface_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, seed: int = 0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points spread uniformly by area over a mesh, and their face normals."""
+    rng = np.random.default_rng(seed)
+    a, b, c = (vertices[triangles[:, k]].astype(np.float64) for k in range(3))
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1)
+    faces = rng.choice(len(triangles), count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    points = (1 - s)[:, None] * a[faces] + (s * (1 - r2))[:, None] * b[faces] + (s * r2)[:, None] * c[faces]
+    normals = cross[faces] / np.maximum(area[faces], 1e-12)[:, None]
+    return points, normals
+
+
+def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.RaycastingScene,
+               sensors: list[tuple[CameraModel, np.ndarray, CameraModel, np.ndarray]], min_range: float,
+               max_range: float, grazing_cos: float) -> np.ndarray:
+    """Which points some camera measures: ``sensors`` holds per camera (depth model,
+    T_world_depth, colour model, T_world_color)."""
+    seen = np.zeros(len(points), bool)
+    for depth_model, T_wd, color_model, T_wc in sensors:
+        eye = T_wd[:3, 3]
+        ray = points - eye
+        dist = np.linalg.norm(ray, axis=1)
+        ray /= dist[:, None]
+        ok = (dist >= min_range) & (dist <= max_range)
+        ok &= np.abs(np.sum(normals * ray, axis=1)) >= grazing_cos     # meshes' normals may face either way
+        for model, T in ((depth_model, T_wd), (color_model, T_wc)):
+            local = points @ invert(T)[:3, :3].T + invert(T)[:3, 3]
+            front = local[:, 2] > 0.05
+            px = np.full((len(points), 2), -1.0)
+            px[front] = model.project(local[front])
+            ok &= front & (px[:, 0] >= 0) & (px[:, 0] <= model.width - 1) & (px[:, 1] >= 0) \
+                & (px[:, 1] <= model.height - 1)
+        rays = np.concatenate([np.broadcast_to(eye, ray.shape), ray], axis=1).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))['t_hit'].numpy()
+        ok &= hit >= dist - 0.002
+        seen |= ok
+    return seen
+
+
+def score_frame(model: FusedModel, truth: o3d.geometry.TriangleMesh, sensors, tof: dict, samples: int = 200_000
+                ) -> dict:
+    """Accuracy and completeness of one fused frame against its ground-truth mesh."""
+    gt_v, gt_t = np.asarray(truth.vertices), np.asarray(truth.triangles)
+    gt_scene = _scene(gt_v, gt_t)
+    if len(model.vertices) == 0:
+        return {'accuracy_mm': None, 'completeness': 0.0, 'completeness_all': 0.0, 'vertices': 0}
+    d_fused = gt_scene.compute_distance(o3d.core.Tensor(model.vertices.astype(np.float32))).numpy()
+    points, normals = surface_samples(gt_v, gt_t, samples)
+    seen = observable(points, normals, gt_scene, sensors, tof['min_range'], tof['max_range'], tof['grazing_cos'])
+    d_truth = _scene(model.vertices, model.triangles).compute_distance(
+        o3d.core.Tensor(points.astype(np.float32))).numpy()
+    close = d_truth <= COMPLETENESS_MM / 1000
+    return {'accuracy_mm': float(d_fused.mean() * 1000), 'accuracy_median_mm': float(np.median(d_fused) * 1000),
+            'accuracy_p90_mm': float(np.percentile(d_fused, 90) * 1000),
+            'completeness': float(close[seen].mean()) if seen.any() else 0.0,
+            'completeness_all': float(close.mean()), 'observable_fraction': float(seen.mean()),
+            'vertices': int(len(model.vertices))}
+
+
+def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True, max_frames: int | None = None
+                    ) -> dict:
+    from volcap_driver.synth.session import GroundTruth
+    gt = GroundTruth(bag)
+    frames_dir = Path(run_dir) / 'frames'
+    entries = read_manifest(frames_dir)
+    if max_frames:
+        entries = entries[:max_frames]
+    by_stamp = {f['stamp_ns']: f for f in gt.frames if 'T_world_subject' in f}
+    stamps = np.array(sorted(by_stamp), dtype=np.int64)
+    if not entries or not len(stamps):
+        raise ValueError(f'nothing to score: {len(entries)} fused frames, {len(stamps)} ground-truth subject frames')
+    rig = gt.rig
+    sensors = [(c.depth, gt.T_world_depth(c.name), c.color, gt.T_world_color(c.name)) for c in rig.cameras]
+    tof = gt.doc['config']['tof']
+    per_frame = []
+    for entry in tqdm(entries, desc='scoring fused frames', unit='frame', disable=not progress):
+        nearest = int(stamps[np.argmin(np.abs(stamps - entry['stamp_ns']))])
+        if abs(nearest - entry['stamp_ns']) > 20_000_000:
+            raise ValueError(f'fused frame {entry["index"]} (stamp {entry["stamp_ns"]}) has no ground-truth frame')
+        truth = gt.subject_mesh(by_stamp[nearest]['index'])
+        row = score_frame(read_ply(frames_dir / entry['ply']), truth, sensors, tof)
+        per_frame.append({'index': entry['index'], 'stamp_ns': entry['stamp_ns'], **row})
+    acc = [r['accuracy_mm'] for r in per_frame if r['accuracy_mm'] is not None]
+    return {'accuracy_mm': float(np.mean(acc)) if acc else None,
+            'completeness': float(np.mean([r['completeness'] for r in per_frame])),
+            'completeness_all': float(np.mean([r['completeness_all'] for r in per_frame])),
+            'completeness_threshold_mm': COMPLETENESS_MM, 'frames': len(per_frame), 'per_frame': per_frame}
+
+
+# posed RGB-D frame folders ------------------------------------------------------------------
+def read_frames_folder(folder: str | Path, intrinsics: str | Path, stride: int = 1
+                       ) -> tuple[CameraModel, CameraModel, list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]]:
+    """(depth model, colour model, [(name, depth mm, rgb, T_world_camera)]) of a frame folder."""
+    folder = Path(folder)
+    K = np.loadtxt(intrinsics)
+    if K.shape != (3, 3):
+        raise ValueError(f'{intrinsics}: expected a 3x3 intrinsic matrix')
+    names = sorted(p.name[:-len('.color.png')] for p in folder.glob('frame-*.color.png'))[::stride]
+    if not names:
+        raise FileNotFoundError(f'{folder} has no frame-NNNNNN.color.png')
+    frames = []
+    for name in names:
+        color = cv2.imread(str(folder / f'{name}.color.png'), cv2.IMREAD_COLOR)
+        depth = cv2.imread(str(folder / f'{name}.depth.png'), cv2.IMREAD_UNCHANGED)
+        if color is None or depth is None or depth.dtype != np.uint16:
+            raise ValueError(f'{folder / name}: colour PNG and 16-bit depth PNG expected')
+        pose = np.loadtxt(folder / f'{name}.pose.txt')
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise ValueError(f'{folder / name}.pose.txt: expected a finite 4x4 camera-to-world matrix')
+        frames.append((name, depth, cv2.cvtColor(color, cv2.COLOR_BGR2RGB), pose))
+    h, w = frames[0][1].shape
+    depth_model = CameraModel(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    ch, cw = frames[0][2].shape[:2]
+    color_model = depth_model if (ch, cw) == (h, w) else depth_model.scaled(cw, ch)
+    return depth_model, color_model, frames
+
+
+def fuse_frames(folder: str | Path, intrinsics: str | Path, cfg: FusionConfig, stride: int = 1,
+                progress: bool = True) -> tuple[FusedModel, FusedModel, list[np.ndarray]]:
+    """(ours, bare Open3D, camera poses) for a frame folder. Each frame is one camera of a
+    static rig: all are fused into one volume."""
+    import open3d.core as o3c
+    depth_model, color_model, frames = read_frames_folder(folder, intrinsics, stride)
+    views = [CameraView(n, d, depth_model, c, color_model, T) for n, d, c, T in frames]
+    fusion = TsdfFusion(cfg)
+    ours = fusion.fuse(views)
+    box = fusion.capture_box(views)
+    vbg = fusion.new_volume()
+    for _, depth, color, T in tqdm(frames, desc='bare Open3D integration', unit='frame', disable=not progress):
+        d, c = o3d.t.geometry.Image(o3c.Tensor(depth)), o3d.t.geometry.Image(o3c.Tensor(color))
+        K, E = o3c.Tensor(depth_model.K), o3c.Tensor(invert(T))
+        blocks = vbg.compute_unique_block_coordinates(d, K, E, 1000.0, cfg.depth_max, cfg.trunc_voxels)
+        vbg.integrate(blocks, d, c, o3c.Tensor(depth_model.K), o3c.Tensor(color_model.K), E, 1000.0,
+                      cfg.depth_max, cfg.trunc_voxels)
+    mesh = vbg.extract_triangle_mesh(weight_threshold=cfg.weight_threshold).cpu()
+    bare = FusedModel(*crop_to_box(mesh.vertex.positions.numpy(), np.clip(np.round(mesh.vertex.colors.numpy() * 255),
+                                                                           0, 255).astype(np.uint8),
+                                   mesh.triangle.indices.numpy().astype(np.int32), *box), ours.cameras)
+    return ours, bare, [T for *_, T in frames]
+
+
+def surface_distance(a: FusedModel, b: FusedModel) -> dict:
+    """Symmetric vertex-to-surface distances between two meshes (mm)."""
+    ab = _scene(b.vertices, b.triangles).compute_distance(o3d.core.Tensor(a.vertices.astype(np.float32))).numpy()
+    ba = _scene(a.vertices, a.triangles).compute_distance(o3d.core.Tensor(b.vertices.astype(np.float32))).numpy()
+    both = np.concatenate([ab, ba]) * 1000
+    return {'mean_mm': float(both.mean()), 'median_mm': float(np.median(both)),
+            'p95_mm': float(np.percentile(both, 95)), 'ours_to_bare_mean_mm': float(ab.mean() * 1000),
+            'bare_to_ours_mean_mm': float(ba.mean() * 1000)}

@@ -1,0 +1,389 @@
+"""TSDF fusion of one frame set (paper 000, Figs. 16 and 18): every camera's cleaned depth and
+corrected colour integrated into an empty Open3D tensor VoxelBlockGrid, then the coloured mesh
+extracted by marching cubes.
+
+Open3D integrates with a pinhole model. The cameras here (Azure Kinect class) have lens
+distortion, and the cleaned depth is registered to the distorted colour image, so each
+camera's depth and colour are first remapped onto undistorted pinhole grids (``Rectifier``).
+Only blocks inside the capture box are allocated, and the mesh is cut to the box, so walls and
+floor a camera sees never reach the output.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numba
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from volcap_core.camera import CameraModel
+from volcap_core.poses import invert
+
+
+DEPTH_SCALE = 10_000.0   # depth units per metre handed to Open3D (0.1 mm; 6.5 m at most)
+
+
+@dataclass
+class FusionConfig:
+    voxel_size: float = 0.004            # metres
+    trunc_voxels: float = 4.0            # SDF truncation, in voxels
+    weight_threshold: float = 1.0        # voxels observed fewer times than this are not meshed
+    block_resolution: int = 8            # voxels per block edge
+    block_count: int = 40_000            # initial hash map capacity (it grows when needed)
+    depth_max: float = 3.0               # metres; farther depth is not integrated
+    # Capture box, axis-aligned in the world frame: edge lengths (metres) and centre (None: the
+    # point the cameras' optical axes pass closest to, which is where a rig is aimed).
+    box_size: tuple[float, float, float] = (2.6, 2.6, 2.6)
+    box_center: tuple[float, float, float] | None = None
+    depth_upsample: int = 1              # depth resampled this many times finer before integration
+    edge_tolerance: float = 0.02         # metres (+1 %): neighbours closer than this are one surface
+    device: str = 'CPU:0'
+
+    def validate(self) -> None:
+        if not 0.0005 <= self.voxel_size <= 0.1:
+            raise ValueError(f'voxel_size must be within 0.5-100 mm, got {self.voxel_size} m')
+        if not 1.0 <= self.trunc_voxels <= 32.0:
+            raise ValueError(f'trunc_voxels must be within 1-32, got {self.trunc_voxels}')
+        if self.weight_threshold < 0:
+            raise ValueError(f'weight_threshold must be >= 0, got {self.weight_threshold}')
+        if self.block_resolution not in (4, 8, 16):
+            raise ValueError(f'block_resolution must be 4, 8 or 16, got {self.block_resolution}')
+        if self.depth_upsample not in (1, 2, 3, 4):
+            raise ValueError(f'depth_upsample must be 1-4, got {self.depth_upsample}')
+        if self.edge_tolerance < 0:
+            raise ValueError('edge_tolerance must be >= 0')
+        if self.block_count < 1 or not 0 < self.depth_max <= 6.5:
+            raise ValueError('block_count must be >= 1 and depth_max within 0-6.5 m')
+        size = np.asarray(self.box_size, float)
+        if size.shape != (3,) or not np.all(size > 0):
+            raise ValueError(f'box_size must be 3 positive edge lengths, got {self.box_size}')
+        if self.box_center is not None and (np.shape(self.box_center) != (3,)
+                                            or not np.all(np.isfinite(self.box_center))):
+            raise ValueError(f'box_center must be 3 finite values or None, got {self.box_center}')
+        device = o3c.Device(self.device)
+        if device.get_type() == o3c.Device.CUDA and not o3d.core.cuda.is_available():
+            raise ValueError(f'device {self.device}: this Open3D has no CUDA device')
+
+
+def pick_device(requested: str = 'auto') -> str:
+    """'auto' is the first CUDA device when Open3D sees one, the CPU otherwise."""
+    if requested == 'auto':
+        return 'CUDA:0' if o3d.core.cuda.is_available() else 'CPU:0'
+    return requested
+
+
+@dataclass
+class CameraView:
+    """One camera of a frame set: cleaned depth registered to its colour camera, and colour.
+    Both grids share the colour optical frame, at their own resolutions."""
+    name: str
+    depth_mm: np.ndarray           # (h, w) uint16 millimetres, 0 = no depth
+    depth_model: CameraModel
+    color: np.ndarray              # (H, W, 3) uint8 RGB
+    color_model: CameraModel
+    T_world_camera: np.ndarray     # (4, 4) colour optical frame -> world
+
+    def __post_init__(self):
+        if self.depth_mm.dtype != np.uint16 or self.depth_mm.ndim != 2:
+            raise ValueError(f'{self.name}: depth must be (h, w) uint16 millimetres, got {self.depth_mm.dtype} '
+                             f'{self.depth_mm.shape}')
+        if self.depth_mm.shape != (self.depth_model.height, self.depth_model.width):
+            raise ValueError(f'{self.name}: depth is {self.depth_mm.shape[1]}x{self.depth_mm.shape[0]} but its '
+                             f'camera_info says {self.depth_model.width}x{self.depth_model.height}')
+        if self.color.dtype != np.uint8 or self.color.shape != (self.color_model.height, self.color_model.width, 3):
+            raise ValueError(f'{self.name}: colour must be {self.color_model.width}x{self.color_model.height} RGB '
+                             f'uint8, got {self.color.dtype} {self.color.shape}')
+        T = np.asarray(self.T_world_camera, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f'{self.name}: pose must be a finite 4x4 matrix')
+
+
+@dataclass
+class FusedModel:
+    """The fused surface of one time step, in the world frame."""
+    vertices: np.ndarray           # (N, 3) float32
+    colors: np.ndarray             # (N, 3) uint8
+    triangles: np.ndarray          # (M, 3) int32
+    cameras: list[str] = field(default_factory=list)
+    timings_ms: dict = field(default_factory=dict)
+
+    def legacy_mesh(self) -> o3d.geometry.TriangleMesh:
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices.astype(np.float64)),
+                                         o3d.utility.Vector3iVector(self.triangles))
+        mesh.vertex_colors = o3d.utility.Vector3dVector(self.colors.astype(np.float64) / 255.0)
+        return mesh
+
+    def decimated(self, max_triangles: int, cell: float) -> 'FusedModel':
+        """At most ``max_triangles``: vertices merged on a grid of ``cell`` metres, doubled until
+        it fits (Open3D vertex clustering, fast enough to run per frame)."""
+        if len(self.triangles) <= max_triangles:
+            return self
+        mesh = self.legacy_mesh()
+        while True:
+            simple = mesh.simplify_vertex_clustering(cell, o3d.geometry.SimplificationContraction.Average)
+            if len(simple.triangles) <= max_triangles:
+                break
+            cell *= 2
+        return FusedModel(np.asarray(simple.vertices, np.float32),
+                          np.clip(np.round(np.asarray(simple.vertex_colors) * 255), 0, 255).astype(np.uint8),
+                          np.asarray(simple.triangles, np.int32), self.cameras, self.timings_ms)
+
+
+def pinhole(model: CameraModel) -> CameraModel:
+    """The undistorted pinhole camera with the same size and intrinsics."""
+    return CameraModel(model.width, model.height, model.fx, model.fy, model.cx, model.cy)
+
+
+@dataclass
+class RectifiedView:
+    """One camera's depth (uint16, ``DEPTH_SCALE`` units) and colour on undistorted pinhole grids,
+    cropped to where there is depth, with the intrinsics of the crops."""
+    depth: np.ndarray
+    depth_K: np.ndarray
+    color: np.ndarray
+    color_K: np.ndarray
+
+
+class Rectifier:
+    """Puts one camera's images in the form Open3D integrates: pinhole (Open3D has no lens
+    distortion), cropped to the pixels with depth (remapping the whole frame would cost more
+    than integrating the subject), depth on a grid ``scale`` times finer.
+
+    Open3D reads the depth of the pixel nearest to each voxel's projection, so on a slanted
+    surface the signed distance steps by up to half a pixel's footprint. The finer grid is
+    interpolated bilinearly where the source pixels around a sample lie on one surface (within
+    ``edge_tolerance`` metres plus 1 %); at a silhouette the nearest pixel is kept, so nothing
+    is blended across it. Maps are made once per camera.
+    """
+
+    MARGIN_PX = 4
+
+    def __init__(self, depth_model: CameraModel, color_model: CameraModel, scale: int = 1,
+                 edge_tolerance: float = 0.02):
+        self.depth_model, self.color_model = depth_model, color_model
+        self.target = pinhole(depth_model.scaled(depth_model.width * scale, depth_model.height * scale))
+        self.edge_tolerance = edge_tolerance
+        self.map_x, self.map_y = cv2.initUndistortRectifyMap(depth_model.K, depth_model.D, None, self.target.K,
+                                                             (self.target.width, self.target.height), cv2.CV_32FC1)
+        distorted = any(d != 0.0 for d in color_model.dist)
+        self.color_maps = cv2.initUndistortRectifyMap(color_model.K, color_model.D, None, color_model.K,
+                                                      (color_model.width, color_model.height),
+                                                      cv2.CV_16SC2) if distorted else None
+
+    def __call__(self, depth_mm: np.ndarray, color: np.ndarray) -> RectifiedView | None:
+        """Depth in uint16 millimetres, colour RGB; None when the depth has no valid pixel."""
+        roi = self._target_roi(depth_mm > 0)
+        if roi is None:
+            return None
+        x0, y0, x1, y1 = roi
+        depth_units = _resample_depth(depth_mm, self.map_x, self.map_y, x0, y0, x1, y1,
+                                      np.float32(self.edge_tolerance * 1000.0), np.float32(DEPTH_SCALE / 1000.0))
+        depth_K = _shifted(self.target.K, x0, y0)
+        # The colour pixels that see the same rays (both grids share the colour optical frame).
+        t, c = self.target, self.color_model
+        cx0 = int(np.clip(np.floor(c.fx * (x0 - t.cx) / t.fx + c.cx) - self.MARGIN_PX, 0, c.width - 1))
+        cx1 = int(np.clip(np.ceil(c.fx * (x1 - 1 - t.cx) / t.fx + c.cx) + self.MARGIN_PX + 1, cx0 + 1, c.width))
+        cy0 = int(np.clip(np.floor(c.fy * (y0 - t.cy) / t.fy + c.cy) - self.MARGIN_PX, 0, c.height - 1))
+        cy1 = int(np.clip(np.ceil(c.fy * (y1 - 1 - t.cy) / t.fy + c.cy) + self.MARGIN_PX + 1, cy0 + 1, c.height))
+        if self.color_maps is None:
+            color_crop = np.ascontiguousarray(color[cy0:cy1, cx0:cx1])
+        else:
+            color_crop = cv2.remap(color, self.color_maps[0][cy0:cy1, cx0:cx1], self.color_maps[1][cy0:cy1, cx0:cx1],
+                                   cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return RectifiedView(depth_units, depth_K, color_crop, _shifted(c.K, cx0, cy0))
+
+    def _target_roi(self, valid: np.ndarray) -> tuple[int, int, int, int] | None:
+        """(x0, y0, x1, y1) of the target grid that covers the valid source pixels."""
+        rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+        if rows.size == 0:
+            return None
+        m = self.MARGIN_PX
+        sx0, sx1, sy0, sy1 = cols[0] - m, cols[-1] + m, rows[0] - m, rows[-1] + m
+        # The source box's outline taken through the undistortion: lens distortion bends straight
+        # edges, so points along them, not just the corners.
+        edge = np.linspace(0.0, 1.0, 16)
+        xs, ys = sx0 + (sx1 - sx0) * edge, sy0 + (sy1 - sy0) * edge
+        outline = np.concatenate([np.stack([xs, np.full_like(xs, sy0)], 1), np.stack([xs, np.full_like(xs, sy1)], 1),
+                                  np.stack([np.full_like(ys, sx0), ys], 1), np.stack([np.full_like(ys, sx1), ys], 1)])
+        xy = self.depth_model.undistort_pixels(outline)
+        t = self.target
+        u, v = t.fx * xy[:, 0] + t.cx, t.fy * xy[:, 1] + t.cy
+        x0, x1 = int(max(np.floor(u.min()) - m, 0)), int(min(np.ceil(u.max()) + m + 1, t.width))
+        y0, y1 = int(max(np.floor(v.min()) - m, 0)), int(min(np.ceil(v.max()) + m + 1, t.height))
+        return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
+
+
+@numba.njit(cache=True)
+def _resample_depth(depth_mm, map_x, map_y, x0, y0, x1, y1, tolerance_mm, units_per_mm):
+    """Depth (uint16 mm) sampled at (map_x, map_y) over the target rows y0:y1, columns x0:x1, in
+    ``DEPTH_SCALE`` units: bilinear where the four source pixels are valid and within
+    ``tolerance_mm`` (+1 %) of each other, the nearest pixel otherwise. (Open3D takes uint16
+    depth with uint8 colour; units finer than a millimetre keep the interpolation.)"""
+    h, w = depth_mm.shape
+    out = np.zeros((y1 - y0, x1 - x0), np.uint16)
+    for r in range(y1 - y0):
+        for c in range(x1 - x0):
+            x, y = map_x[y0 + r, x0 + c], map_y[y0 + r, x0 + c]
+            if not (x > -0.5 and y > -0.5 and x < w - 0.5 and y < h - 0.5):
+                continue
+            ix, iy = min(max(int(np.floor(x)), 0), w - 2), min(max(int(np.floor(y)), 0), h - 2)
+            fx, fy = min(max(x - ix, 0.0), 1.0), min(max(y - iy, 0.0), 1.0)
+            a, b = np.float32(depth_mm[iy, ix]), np.float32(depth_mm[iy, ix + 1])
+            cc, d = np.float32(depth_mm[iy + 1, ix]), np.float32(depth_mm[iy + 1, ix + 1])
+            lo, hi = min(min(a, b), min(cc, d)), max(max(a, b), max(cc, d))
+            if lo > 0 and hi - lo <= tolerance_mm + 0.01 * hi:
+                z = (a * (1 - fx) + b * fx) * (1 - fy) + (cc * (1 - fx) + d * fx) * fy
+            else:
+                z = np.float32(depth_mm[int(np.floor(y + 0.5)), int(np.floor(x + 0.5))])
+            out[r, c] = min(np.float32(65535.0), z * units_per_mm + np.float32(0.5))
+    return out
+
+
+def _shifted(K: np.ndarray, x0: int, y0: int) -> np.ndarray:
+    """Intrinsics of an image cropped at (x0, y0)."""
+    out = K.copy()
+    out[0, 2] -= x0
+    out[1, 2] -= y0
+    return out
+
+
+class TsdfFusion:
+    """Fuses frame sets. Each time step starts from an empty volume (moving subjects: nothing
+    carries over), but the volume's memory and the per-camera maps are kept between them:
+    allocating a 40 000-block grid costs more than integrating eight cameras into it."""
+
+    def __init__(self, cfg: FusionConfig | None = None):
+        self.cfg = cfg or FusionConfig()
+        self.cfg.validate()
+        self.device = o3c.Device(self.cfg.device)
+        self._rectifiers: dict[tuple[CameraModel, CameraModel], Rectifier] = {}
+        self._volume: o3d.t.geometry.VoxelBlockGrid | None = None
+
+    def rectifier(self, view: CameraView) -> Rectifier:
+        key = (view.depth_model, view.color_model)
+        if key not in self._rectifiers:
+            self._rectifiers[key] = Rectifier(*key, self.cfg.depth_upsample, self.cfg.edge_tolerance)
+        return self._rectifiers[key]
+
+    def empty_volume(self) -> o3d.t.geometry.VoxelBlockGrid:
+        """The kept volume with every block removed."""
+        if self._volume is None:
+            self._volume = self.new_volume()
+            return self._volume
+        hashmap = self._volume.hashmap()
+        active = hashmap.active_buf_indices().to(o3c.int64)
+        if active.shape[0]:
+            # Re-activated blocks keep their old values: a zero weight makes the next
+            # integration overwrite tsdf and colour, and keeps unobserved voxels out of the mesh.
+            if self.device.get_type() == o3c.Device.CPU:
+                hashmap.value_tensor(1).numpy()[active.numpy()] = 0.0
+            else:
+                hashmap.value_tensor(1)[active] = 0.0
+            hashmap.erase(hashmap.key_tensor()[active])
+        return self._volume
+
+    def new_volume(self) -> o3d.t.geometry.VoxelBlockGrid:
+        cfg = self.cfg
+        return o3d.t.geometry.VoxelBlockGrid(
+            attr_names=('tsdf', 'weight', 'color'), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
+            attr_channels=((1), (1), (3)), voxel_size=cfg.voxel_size, block_resolution=cfg.block_resolution,
+            block_count=cfg.block_count, device=self.device)
+
+    def capture_box(self, views: list[CameraView]) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners of the capture box in the world frame."""
+        if self.cfg.box_center is not None:
+            centre = np.asarray(self.cfg.box_center, float)
+        else:
+            try:
+                centre = convergence_point([v.T_world_camera for v in views])
+            except ValueError:   # one camera (or all aimed alike): the middle of what it sees
+                T, depth = views[0].T_world_camera, views[0].depth_mm
+                ahead = float(np.median(depth[depth > 0])) / 1000 if np.any(depth > 0) else 1.5
+                centre = T[:3, 3] + T[:3, 2] * ahead
+        half = np.asarray(self.cfg.box_size, float) / 2
+        return centre - half, centre + half
+
+    def integrate(self, volume: o3d.t.geometry.VoxelBlockGrid, view: CameraView, box: tuple[np.ndarray, np.ndarray]
+                  ) -> int:
+        """Integrates one camera into ``volume`` within ``box``; returns the number of blocks it touched."""
+        cfg = self.cfg
+        rectified = self.rectifier(view)(view.depth_mm, view.color)
+        if rectified is None:
+            return 0
+        depth = o3d.t.geometry.Image(o3c.Tensor.from_numpy(rectified.depth)).to(self.device)
+        color = o3d.t.geometry.Image(o3c.Tensor.from_numpy(rectified.color)).to(self.device)
+        depth_k, color_k = o3c.Tensor(rectified.depth_K), o3c.Tensor(rectified.color_K)
+        extrinsic = o3c.Tensor(invert(np.asarray(view.T_world_camera, np.float64)), o3c.float64)
+        blocks = volume.compute_unique_block_coordinates(depth, depth_k, extrinsic, DEPTH_SCALE, cfg.depth_max, cfg.trunc_voxels)
+        blocks = self._inside(blocks, box)
+        if blocks.shape[0] == 0:
+            return 0
+        volume.integrate(blocks, depth, color, depth_k, color_k, extrinsic, DEPTH_SCALE, cfg.depth_max, cfg.trunc_voxels)
+        return int(blocks.shape[0])
+
+    def _inside(self, blocks: o3c.Tensor, box: tuple[np.ndarray, np.ndarray]) -> o3c.Tensor:
+        # Blocks whose cube touches the box, in block coordinates (floor of metres / block edge).
+        edge = self.cfg.voxel_size * self.cfg.block_resolution
+        lo = o3c.Tensor(np.floor(box[0] / edge).astype(np.int32), device=blocks.device)
+        hi = o3c.Tensor(np.floor(box[1] / edge).astype(np.int32), device=blocks.device)
+        return blocks[((blocks >= lo) & (blocks <= hi)).all(dim=1)]
+
+    def extract(self, volume: o3d.t.geometry.VoxelBlockGrid, box: tuple[np.ndarray, np.ndarray]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vertices, uint8 colours, triangles) of the zero level set, cut to the capture box."""
+        mesh = volume.extract_triangle_mesh(weight_threshold=self.cfg.weight_threshold).cpu()
+        if 'positions' not in mesh.vertex or mesh.vertex.positions.shape[0] == 0 or 'indices' not in mesh.triangle:
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32)
+        vertices = mesh.vertex.positions.numpy()
+        colors = mesh.vertex.colors.numpy() if 'colors' in mesh.vertex else np.zeros_like(vertices)
+        triangles = mesh.triangle.indices.numpy().astype(np.int32)
+        return crop_to_box(vertices, _colors_to_uint8(colors), triangles, *box)
+
+    def fuse(self, views: list[CameraView]) -> FusedModel:
+        """One time step: a fresh volume, every view integrated, the mesh extracted."""
+        import time
+        if not views:
+            raise ValueError('no camera to fuse')
+        t0 = time.perf_counter()
+        box = self.capture_box(views)
+        volume = self.empty_volume()
+        if sum(self.integrate(volume, view, box) for view in views) == 0:
+            raise ValueError('no depth inside the capture box in any camera')
+        t1 = time.perf_counter()
+        vertices, colors, triangles = self.extract(volume, box)
+        t2 = time.perf_counter()
+        return FusedModel(vertices, colors, triangles, [v.name for v in views],
+                          {'integrate': (t1 - t0) * 1e3, 'extract': (t2 - t1) * 1e3})
+
+
+def convergence_point(poses: list[np.ndarray]) -> np.ndarray:
+    """The point closest (least squares) to every camera's optical axis, in the world frame."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for T in poses:
+        T = np.asarray(T, float)
+        axis = T[:3, 2] / np.linalg.norm(T[:3, 2])
+        P = np.eye(3) - np.outer(axis, axis)
+        A += P
+        b += P @ T[:3, 3]
+    if len(poses) < 2 or np.linalg.cond(A) > 1e6:
+        raise ValueError('cameras aimed from one direction have no convergence point')
+    return np.linalg.solve(A, b)
+
+
+def _colors_to_uint8(colors: np.ndarray) -> np.ndarray:
+    # Open3D integrates uint8 colour as 0-255 and divides by 255 when it extracts the mesh.
+    return np.clip(np.round(colors * 255.0), 0, 255).astype(np.uint8)
+
+
+def crop_to_box(vertices: np.ndarray, colors: np.ndarray, triangles: np.ndarray, box_min, box_max
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh without the triangles that have a vertex outside the box, vertices re-indexed."""
+    inside = np.all((vertices >= np.asarray(box_min, np.float32)) & (vertices <= np.asarray(box_max, np.float32)),
+                    axis=1)
+    if inside.all():
+        return vertices, colors, triangles
+    keep_tri = inside[triangles].all(axis=1)
+    new_index = np.cumsum(inside) - 1
+    return vertices[inside], colors[inside], new_index[triangles[keep_tri]].astype(np.int32)
