@@ -78,7 +78,8 @@ def test_executables_start_from_the_install_space(install, pkg, exe, studio_bag,
               'synthetic_rig': {'cameras': 1, 'frames': 1, 'fps': 5.0},
               'depth_filter': {'camera': 'cam0'},
               'calibration_service': {'output': str(tmp_path / 'calibration.yaml')},
-              'color_corrector': {'camera': 'cam0'}}[exe]
+              'color_corrector': {'camera': 'cam0'},
+              'tsdf_fusion': {'voxel_size': 0.01}}[exe]
     proc = run_installed(install, pkg, exe, params, shared_data)
     try:
         lines = []
