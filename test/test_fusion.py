@@ -7,7 +7,7 @@ import pytest
 from volcap_core.camera import CameraModel
 from volcap_fusion.render import camera_up, orbit_views, render
 from volcap_fusion.sequence import SequenceWriter, glb_bytes, read_glb, read_manifest, read_ply
-from volcap_fusion.tsdf import CameraView, FusedModel, FusionConfig, Rectifier, TsdfFusion, convergence_point
+from volcap_fusion.tsdf import CameraView, FusionConfig, Rectifier, TsdfFusion, convergence_point
 from volcap_fusion.render import look_at
 
 RADIUS = 0.3
@@ -120,6 +120,8 @@ def test_sequence_files_round_trip(tmp_path):
     writer = SequenceWriter(tmp_path)
     writer.write(model, 123, missing=['cam9'])
     writer.write(model, 456)
+    with open(tmp_path / 'sequence.jsonl', 'a') as f:
+        f.write('{"index": 2, "sta')             # a line still being written is skipped
     frames = read_manifest(tmp_path)
     assert [f['stamp_ns'] for f in frames] == [123, 456] and frames[0]['missing'] == ['cam9']
     glb = read_glb(tmp_path / frames[1]['glb'])
@@ -129,6 +131,8 @@ def test_sequence_files_round_trip(tmp_path):
     assert np.allclose(ply.vertices, model.vertices, atol=1e-6) and np.array_equal(ply.colors, model.colors)
     assert glb_bytes(model)[:4] == b'glTF'
     assert not list(tmp_path.glob('.*'))           # no temporary file left behind
+    with pytest.raises(FileExistsError):
+        SequenceWriter(tmp_path)
 
 
 def test_mesh_marker_deserialises_and_decimation_bounds_it():
@@ -163,13 +167,7 @@ def test_render_shows_the_model():
 def test_real_rgbd_frames_match_a_bare_open3d_integration(shared_data, tmp_path):
     from volcap_fusion.evaluate import fuse_frames, surface_distance
     folder = shared_data / 'rgbd_box'
-    ours, bare, poses = fuse_frames(folder, folder / 'intrinsics.K.txt', FusionConfig(voxel_size=0.01), stride=5,
-                                    progress=False)
+    ours, bare, poses = fuse_frames(folder, folder / 'intrinsics.K.txt', FusionConfig(voxel_size=0.01), stride=5)
     assert len(poses) == 10 and len(ours.triangles) > 2000
     d = surface_distance(ours, bare)
     assert d['mean_mm'] < 0.5, d     # pinhole frames: the same integration (measured 0.00 mm)
-
-
-def test_fused_model_type_checks():
-    empty = FusedModel(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32))
-    assert len(empty.legacy_mesh().vertices) == 0

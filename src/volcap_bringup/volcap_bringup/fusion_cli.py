@@ -1,32 +1,37 @@
 """`volcap run`, `volcap eval fusion` and `volcap fuse-frames`."""
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from volcap_core.files import write_json
+
 
 def _renders(models: list[tuple[str, object]], poses: list[np.ndarray], path: Path) -> Path:
     """One row per model: the model from four sides."""
-    from volcap_fusion.render import camera_up, orbit_views, turntable, write_png
+    from volcap_filter.figures import write_png
+    from volcap_fusion.render import camera_up, orbit_views, turntable
     up = camera_up(poses)
     rows = [turntable(m, orbit_views(m, up), label=label) for label, m in models if len(m.triangles)]
     if not rows:
         raise ValueError('nothing to render: every mesh is empty')
-    return write_png(path, np.vstack(rows))
+    write_png(path, np.vstack(rows))
+    return path
 
 
 def cmd_run(args) -> int:
     from volcap_core.calibration import Calibration
     from volcap_fusion.sequence import read_manifest, read_ply
 
-    from .run_graph import RunConfig, run_graph, write_metrics
+    from volcap_fusion.sequence import MANIFEST
+
+    from .run_graph import RunConfig, run_graph
     out = Path(args.out)
     cfg = RunConfig(voxel_size=args.voxel, rate=args.rate, composed=args.composed, depth_upsample=args.depth_upsample)
     metrics = run_graph(args.bag, args.calibration, out, cfg, progress=not args.quiet)
-    frames = read_manifest(out / 'frames') if (out / 'frames' / 'sequence.json').exists() else []
+    frames = read_manifest(out / 'frames') if (out / 'frames' / MANIFEST).exists() else []
     metrics['frames_written'] = len(frames)
     metrics['frames'] = frames
     calibration = Calibration.load(args.calibration)
@@ -35,7 +40,7 @@ def cmd_run(args) -> int:
         picks = sorted({0, len(frames) // 2, len(frames) - 1})
         metrics['renders'] = [str(_renders([(f'frame {k}', read_ply(out / 'frames' / frames[k]['ply']))], poses,
                                            out / 'renders' / f'frame_{k:06d}.png')) for k in picks]
-    write_metrics(out / 'metrics.json', metrics)
+    write_json(out / 'metrics.json', metrics)
     p = metrics['probe']
     print(f'{len(frames)} of {metrics["capture_frame_sets_in_bag"]} capture frame sets fused into {out / "frames"} '
           f'({metrics["mode"]}); the renderer probe received {p["meshes_received"]} meshes and '
@@ -57,9 +62,7 @@ def cmd_eval_fusion(args) -> int:
           f'completeness {100 * report["completeness"]:.1f} % of the observable surface within '
           f'{report["completeness_threshold_mm"]:.0f} mm ({100 * report["completeness_all"]:.1f} % of all of it)')
     if args.json:
-        from volcap_core.files import atomic_write
-        text = json.dumps(report, indent=2)
-        atomic_write(args.json, lambda f: f.write(text), binary=False)
+        write_json(args.json, report)
         print(f'wrote {args.json}')
     return 0
 
@@ -70,7 +73,7 @@ def cmd_fuse_frames(args) -> int:
     from volcap_fusion.tsdf import FusionConfig
     cfg = FusionConfig(voxel_size=args.voxel, weight_threshold=args.weight_threshold, depth_max=args.depth_max)
     t0 = time.monotonic()
-    ours, bare, poses = fuse_frames(args.folder, args.intrinsics, cfg, stride=args.stride, progress=not args.quiet)
+    ours, bare, poses = fuse_frames(args.folder, args.intrinsics, cfg, stride=args.stride)
     out = Path(args.out)
     write_ply(out, ours)
     comparison = surface_distance(ours, bare)
@@ -78,9 +81,7 @@ def cmd_fuse_frames(args) -> int:
     report = {'frames': len(poses), 'voxel_size': args.voxel, 'vertices': len(ours.vertices),
               'triangles': len(ours.triangles), 'bare_vertices': len(bare.vertices),
               'distance_to_bare_open3d': comparison, 'seconds': time.monotonic() - t0, 'render': str(render)}
-    text = json.dumps(report, indent=2)
-    from volcap_core.files import atomic_write
-    atomic_write(out.with_suffix('.json'), lambda f: f.write(text), binary=False)
+    write_json(out.with_suffix('.json'), report)
     print(f'fused {len(poses)} frames into {out} ({len(ours.triangles)} triangles); against a bare Open3D '
           f'integration of the same frames: mean {comparison["mean_mm"]:.2f} mm, p95 {comparison["p95_mm"]:.2f} mm; '
           f'render {render}')
@@ -95,8 +96,9 @@ def add_parsers(sub, esub) -> None:
     r.add_argument('--composed', action='store_true', help='run every node in this process')
     r.add_argument('--voxel', type=float, default=0.004, help='TSDF voxel size (m)')
     r.add_argument('--depth-upsample', type=int, default=1, help='depth resampled this many times finer')
-    r.add_argument('--rate', type=float, default=0.1,
-                   help='playback speed; the graph must keep up to fuse every frame set (2 cores: 0.1 at 4 mm)')
+    r.add_argument('--rate', type=float, default=0.04,
+                   help='playback speed; the graph must keep up to fuse every frame set (2 cores: 0.04, '
+                        'about 1.2 frame sets/s)')
     r.add_argument('--quiet', action='store_true')
     r.set_defaults(func=cmd_run)
 

@@ -9,29 +9,32 @@ first colour image reached the probe) to the moment its mesh arrived.
 """
 from __future__ import annotations
 
-import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import rclpy
+import yaml
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import String
+from tqdm import tqdm
 from visualization_msgs.msg import Marker
 
 from volcap_core import qos, topics, transport
 from volcap_core.calibration import Calibration
-from volcap_core.conversions import pointcloud2_to_points, stamp_to_ns
-from volcap_core.files import atomic_write
+from volcap_core.conversions import stamp_to_ns
 from volcap_driver.bag_io import BagReader
 from volcap_driver.frames import read_rig
 from volcap_driver.playback import cdr_stamp_ns
 
 from .processes import start_node, stop
+
+
+SYNC_TOLERANCE_NS = 5_000_000    # tsdf_fusion's default sync_tolerance_ms
 
 
 class RendererProbe(Node):
@@ -54,11 +57,16 @@ class RendererProbe(Node):
         self.meshes[cdr_stamp_ns(data)] = (time.time(), len(data))
 
     def _on_cloud(self, msg: PointCloud2) -> None:
-        xyz, _ = pointcloud2_to_points(msg)
-        self.clouds[stamp_to_ns(msg.header.stamp)] = (time.time(), len(xyz))
+        self.clouds[stamp_to_ns(msg.header.stamp)] = (time.time(), msg.width * msg.height)
 
     def summary(self) -> dict:
-        latency = [(t - self.entered[s]) * 1000 for s, (t, _) in self.meshes.items() if s in self.entered]
+        # A frame set is stamped by whichever camera opened it: match within the sync tolerance.
+        entered = np.array(sorted(self.entered), dtype=np.int64)
+        latency = []
+        for stamp, (arrival, _) in self.meshes.items():
+            k = int(np.argmin(np.abs(entered - stamp))) if entered.size else -1
+            if k >= 0 and abs(int(entered[k]) - stamp) <= SYNC_TOLERANCE_NS:
+                latency.append((arrival - self.entered[int(entered[k])]) * 1000)
         arrivals = sorted(t for t, _ in self.meshes.values())
         rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) > 2 else None
         return {'meshes_received': len(self.meshes), 'clouds_received': len(self.clouds),
@@ -72,11 +80,10 @@ class RendererProbe(Node):
 @dataclass
 class RunConfig:
     voxel_size: float = 0.004
-    rate: float = 0.1                 # bag playback speed; the graph must keep up with it to fuse every set
+    rate: float = 0.04                # bag playback speed; the graph must keep up with it to fuse every set
     composed: bool = False
     depth_upsample: int = 1
     settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
-    fusion: dict = field(default_factory=dict)   # further tsdf_fusion parameters
 
 
 def graph_parameters(bag: Path, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str]
@@ -84,7 +91,7 @@ def graph_parameters(bag: Path, cameras: list[str], frames_dir: Path, cfg: RunCo
     """(package, executable, namespace, parameters) of every node of the graph."""
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True,
-              'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0, **cfg.fusion}
+              'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
     nodes = [('volcap_driver', 'bag_player', '', {'bag': str(bag), 'rate': cfg.rate, 'topics': played,
                                                   'wait_for_subscribers': 60.0, 'exit_when_done': not cfg.composed})]
     nodes += [('volcap_filter', 'depth_filter', c, {'reliable': True}) for c in cameras]
@@ -101,7 +108,7 @@ def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cf
     calibration = Calibration.load(calibration_path)
     with BagReader(bag) as reader:
         rig = read_rig(reader)
-        capture_sets = _capture_sets(reader)
+        capture_sets = _capture_sets(reader, rig.names[0])
         duration = (reader.end_ns - reader.start_ns) / 1e9
     cameras = [c for c in rig.names if c in calibration.cameras]
     if not cameras:
@@ -121,22 +128,29 @@ def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cf
     procs, hosted = [], []
     t_start = time.monotonic()
     try:
+        # The player starts last, once every node subscribes: frames sent earlier would be lost.
+        graph, (player_node,) = nodes[1:], nodes[:1]
         if cfg.composed:
-            hosted = [_compose(*n) for n in nodes]
+            hosted = [_compose(*n) for n in graph]
             for node in hosted:
                 executor.add_node(node)
-            player = hosted[0]
+        else:
+            procs = [start_node(pkg, exe, params, namespace=ns) for pkg, exe, ns, params in graph]
+        _wait_until_subscribed(executor, probe, cameras, timeout=120.0)
+        if cfg.composed:
+            player = _compose(*player_node)
+            executor.add_node(player)
+            hosted.insert(0, player)
 
             def playing():
                 return player.playing
         else:
-            procs = [start_node(pkg, exe, params, namespace=ns) for pkg, exe, ns, params in nodes]
+            procs.insert(0, start_node(*player_node[:2], player_node[3], namespace=player_node[2]))
 
             def playing():
                 return procs[0].poll() is None
         deadline = time.monotonic() + 120 + duration / cfg.rate * 3
         last_count, last_change = 0, time.monotonic()
-        from tqdm import tqdm
         bar = tqdm(total=capture_sets, desc='fused frame sets', unit='set', disable=not progress)
         ended = None
         while time.monotonic() < deadline:
@@ -168,18 +182,36 @@ def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cf
             'node_exit_codes': {f'{exe}{"/" + ns if ns else ""}': c for (_, exe, ns, _), c in zip(nodes, codes)}}
 
 
-def _capture_sets(reader: BagReader) -> int:
-    """Frame sets of the capture phase (stamps of the first camera's colour images in it)."""
-    import yaml
-    phases = sorted((m.stamp_ns, (yaml.safe_load(m.decode().data) or {}).get('phase'))
-                    for m in reader.messages([topics.PHASE]))
-    rig = read_rig(reader)
-    topic = topics.camera_topic(rig.names[0], topics.COLOR_IMAGE)
-    count = 0
-    for m in reader.messages([topic]):
-        phase = [p for s, p in phases if s <= m.stamp_ns]
-        count += bool(phase) and phase[-1] == topics.CAPTURE or not phases
-    return count
+def _capture_sets(reader: BagReader, camera: str) -> int:
+    """Frame sets the fusion will fuse: ``camera``'s colour images in the capture phase (all
+    of them when the bag announces no phase)."""
+    changes = sorted((m.stamp_ns, (yaml.safe_load(m.decode().data) or {}).get('phase'))
+                     for m in reader.messages([topics.PHASE]))
+    stamps = [m.stamp_ns for m in reader.messages([topics.camera_topic(camera, topics.COLOR_IMAGE)])]
+    if not changes:
+        return len(stamps)
+    starts = np.array([s for s, _ in changes])
+    phases = [p for _, p in changes]
+    at = np.searchsorted(starts, stamps, side='right') - 1
+    return sum(1 for k in at if k >= 0 and phases[k] == topics.CAPTURE)
+
+
+def _wait_until_subscribed(executor, probe: Node, cameras: list[str], timeout: float) -> None:
+    """Until every camera's raw colour has its filter and corrector (and, for the first camera,
+    the probe), its raw depth a filter, and its cleaned depth and corrected colour the fusion."""
+    def wanted(cam):
+        return {topics.camera_topic(cam, topics.COLOR_IMAGE): 2 + (cam == cameras[0]),
+                topics.camera_topic(cam, topics.DEPTH_IMAGE): 1,
+                topics.camera_topic(cam, topics.DEPTH_CLEAN): 1,
+                topics.camera_topic(cam, topics.COLOR_CORRECTED): 1}
+    counts = {'/' + t: n for cam in cameras for t, n in wanted(cam).items()}
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if all(probe.count_subscribers(t) >= n for t, n in counts.items()):
+            return
+        executor.spin_once(timeout_sec=0.1)
+    late = [t for t, n in counts.items() if probe.count_subscribers(t) < n]
+    raise RuntimeError(f'the graph did not come up within {timeout:.0f} s: too few subscribers on {late[:3]}')
 
 
 def _compose(package: str, executable: str, namespace: str, params: dict) -> Node:
@@ -192,7 +224,3 @@ def _compose(package: str, executable: str, namespace: str, params: dict) -> Nod
     overrides = [Parameter(k, value=v) for k, v in params.items()]
     return getattr(module, cls)(namespace=namespace or None, parameter_overrides=overrides)
 
-
-def write_metrics(path: Path, metrics: dict) -> None:
-    text = json.dumps(metrics, indent=2)
-    atomic_write(path, lambda f: f.write(text), binary=False)

@@ -2,6 +2,7 @@
 until the new one is complete."""
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -21,3 +22,9 @@ def atomic_write(path: str | Path, write: Callable[[IO], None], binary: bool = T
         Path(tmp).unlink(missing_ok=True)
         raise
     return target
+
+
+def write_json(path: str | Path, doc) -> Path:
+    """``doc`` as indented JSON, written atomically."""
+    text = json.dumps(doc, indent=2)
+    return atomic_write(path, lambda f: f.write(text), binary=False)

@@ -115,16 +115,18 @@ class DepthFilter(Node):
         self.processed = self.skipped = 0
         self.last_ms = 0.0
 
+        # Created before the image subscriptions: the executor serves ready subscriptions in
+        # creation order, so a phase change or camera_info sent with a frame is seen before it.
+        self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
+        self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         inputs = qos.EVERY_FRAME if declare(self, 'reliable', False, 'subscribe reliably (offline replay: lose no '
                                             'frame)', read_only=True) else qos.SENSOR
-        self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), inputs)
-        self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), inputs)
         self.create_subscription(CameraInfo, topics.COLOR_INFO, lambda m: self.infos.__setitem__('color', m),
                                  inputs)
         self.create_subscription(CameraInfo, topics.DEPTH_INFO, lambda m: self.infos.__setitem__('depth', m),
                                  inputs)
-        self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
-        self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
+        self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), inputs)
+        self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), inputs)
         self.pub_depth = self.create_publisher(Image, topics.DEPTH_CLEAN, qos.DRIVER)
         self.pub_info = self.create_publisher(CameraInfo, topics.DEPTH_CLEAN_INFO, qos.DRIVER)
         self.pub_points = self.create_publisher(PointCloud2, topics.POINTS, qos.DRIVER)

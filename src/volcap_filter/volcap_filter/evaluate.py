@@ -18,7 +18,6 @@ bag's clean-plate frames:
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from volcap_core.files import atomic_write
+from volcap_core.files import write_json
 from volcap_core.topics import CAPTURE, CLEAN_PLATE
 from volcap_driver.frames import frame_sets
 from volcap_driver.synth.session import GroundTruth
@@ -179,4 +178,4 @@ def format_report(report: dict) -> str:
 
 
 def write_report(report: dict, path: Path) -> None:
-    atomic_write(path, lambda f: json.dump(report, f, indent=2), binary=False)
+    write_json(path, report)

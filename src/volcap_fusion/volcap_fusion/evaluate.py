@@ -13,7 +13,7 @@ to the synthetic bag's ground truth, and scored against the subject mesh at that
 
 `volcap fuse-frames FOLDER`: the ``frame-NNNNNN.{color.png,depth.png,pose.txt}`` layout (one
 moving camera, e.g. ``../shared/data/rgbd_box``) fused with ``TsdfFusion``, plus a bare Open3D
-integration of the same frames for comparison.
+integration of the same frames (``bare_open3d_fusion``) for comparison.
 """
 from __future__ import annotations
 
@@ -28,16 +28,10 @@ from volcap_core.camera import CameraModel
 from volcap_core.poses import invert
 
 from .sequence import read_manifest, read_ply
-from .tsdf import CameraView, FusedModel, FusionConfig, TsdfFusion, crop_to_box
+from .tsdf import (CameraView, FusedModel, FusionConfig, TsdfFusion, bare_open3d_fusion, crop_to_box,
+                   raycasting_scene)
 
 COMPLETENESS_MM = 5.0
-
-
-def _scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
-    return scene
 
 
 def surface_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, seed: int = 0
@@ -69,7 +63,8 @@ def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.Ra
         ok = (dist >= min_range) & (dist <= max_range)
         ok &= np.abs(np.sum(normals * ray, axis=1)) >= grazing_cos     # meshes' normals may face either way
         for model, T in ((depth_model, T_wd), (color_model, T_wc)):
-            local = points @ invert(T)[:3, :3].T + invert(T)[:3, 3]
+            T_local = invert(T)
+            local = points @ T_local[:3, :3].T + T_local[:3, 3]
             front = local[:, 2] > 0.05
             px = np.full((len(points), 2), -1.0)
             px[front] = model.project(local[front])
@@ -86,13 +81,13 @@ def score_frame(model: FusedModel, truth: o3d.geometry.TriangleMesh, sensors, to
                 ) -> dict:
     """Accuracy and completeness of one fused frame against its ground-truth mesh."""
     gt_v, gt_t = np.asarray(truth.vertices), np.asarray(truth.triangles)
-    gt_scene = _scene(gt_v, gt_t)
+    gt_scene = raycasting_scene(gt_v, gt_t)
     if len(model.vertices) == 0:
         return {'accuracy_mm': None, 'completeness': 0.0, 'completeness_all': 0.0, 'vertices': 0}
     d_fused = gt_scene.compute_distance(o3d.core.Tensor(model.vertices.astype(np.float32))).numpy()
     points, normals = surface_samples(gt_v, gt_t, samples)
     seen = observable(points, normals, gt_scene, sensors, tof['min_range'], tof['max_range'], tof['grazing_cos'])
-    d_truth = _scene(model.vertices, model.triangles).compute_distance(
+    d_truth = model.raycasting_scene().compute_distance(
         o3d.core.Tensor(points.astype(np.float32))).numpy()
     close = d_truth <= COMPLETENESS_MM / 1000
     return {'accuracy_mm': float(d_fused.mean() * 1000), 'accuracy_median_mm': float(np.median(d_fused) * 1000),
@@ -160,34 +155,24 @@ def read_frames_folder(folder: str | Path, intrinsics: str | Path, stride: int =
     return depth_model, color_model, frames
 
 
-def fuse_frames(folder: str | Path, intrinsics: str | Path, cfg: FusionConfig, stride: int = 1,
-                progress: bool = True) -> tuple[FusedModel, FusedModel, list[np.ndarray]]:
-    """(ours, bare Open3D, camera poses) for a frame folder. Each frame is one camera of a
-    static rig: all are fused into one volume."""
-    import open3d.core as o3c
+def fuse_frames(folder: str | Path, intrinsics: str | Path, cfg: FusionConfig, stride: int = 1
+                ) -> tuple[FusedModel, FusedModel, list[np.ndarray]]:
+    """(ours, bare Open3D cut to the same capture box, camera poses) for a frame folder. Each
+    frame is one camera of a static rig: all are fused into one volume."""
     depth_model, color_model, frames = read_frames_folder(folder, intrinsics, stride)
     views = [CameraView(n, d, depth_model, c, color_model, T) for n, d, c, T in frames]
     fusion = TsdfFusion(cfg)
     ours = fusion.fuse(views)
+    bare = bare_open3d_fusion(views, cfg)
     box = fusion.capture_box(views)
-    vbg = fusion.new_volume()
-    for _, depth, color, T in tqdm(frames, desc='bare Open3D integration', unit='frame', disable=not progress):
-        d, c = o3d.t.geometry.Image(o3c.Tensor(depth)), o3d.t.geometry.Image(o3c.Tensor(color))
-        K, E = o3c.Tensor(depth_model.K), o3c.Tensor(invert(T))
-        blocks = vbg.compute_unique_block_coordinates(d, K, E, 1000.0, cfg.depth_max, cfg.trunc_voxels)
-        vbg.integrate(blocks, d, c, o3c.Tensor(depth_model.K), o3c.Tensor(color_model.K), E, 1000.0,
-                      cfg.depth_max, cfg.trunc_voxels)
-    mesh = vbg.extract_triangle_mesh(weight_threshold=cfg.weight_threshold).cpu()
-    bare = FusedModel(*crop_to_box(mesh.vertex.positions.numpy(), np.clip(np.round(mesh.vertex.colors.numpy() * 255),
-                                                                           0, 255).astype(np.uint8),
-                                   mesh.triangle.indices.numpy().astype(np.int32), *box), ours.cameras)
-    return ours, bare, [T for *_, T in frames]
+    bare = FusedModel(*crop_to_box(bare.vertices, bare.colors, bare.triangles, *box), bare.cameras)
+    return ours, bare, [v.T_world_camera for v in views]
 
 
 def surface_distance(a: FusedModel, b: FusedModel) -> dict:
     """Symmetric vertex-to-surface distances between two meshes (mm)."""
-    ab = _scene(b.vertices, b.triangles).compute_distance(o3d.core.Tensor(a.vertices.astype(np.float32))).numpy()
-    ba = _scene(a.vertices, a.triangles).compute_distance(o3d.core.Tensor(b.vertices.astype(np.float32))).numpy()
+    ab = b.raycasting_scene().compute_distance(o3d.core.Tensor(a.vertices.astype(np.float32))).numpy()
+    ba = a.raycasting_scene().compute_distance(o3d.core.Tensor(b.vertices.astype(np.float32))).numpy()
     both = np.concatenate([ab, ba]) * 1000
     return {'mean_mm': float(both.mean()), 'median_mm': float(np.median(both)),
             'p95_mm': float(np.percentile(both, 95)), 'ours_to_bare_mean_mm': float(ab.mean() * 1000),

@@ -3,13 +3,9 @@ virtual cameras around the model, vertex colours interpolated over each triangle
 headlight so the shape reads as well as the colour."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import open3d as o3d
-
-from volcap_core.files import atomic_write
 
 from .tsdf import FusedModel
 
@@ -58,9 +54,7 @@ def render(model: FusedModel, T_world_camera: np.ndarray, width: int = 480, heig
     image = np.full((height, width, 3), background, np.uint8)
     if len(model.triangles) == 0:
         return image
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(model.vertices.astype(np.float32)),
-                        o3d.core.Tensor(model.triangles.astype(np.uint32)))
+    scene = model.raycasting_scene()
     f = 0.5 * height / np.tan(np.radians(fov_deg) / 2)
     u, v = np.meshgrid(np.arange(width) - (width - 1) / 2, np.arange(height) - (height - 1) / 2)
     dirs = np.stack([u / f, v / f, np.ones_like(u)], axis=-1) @ T_world_camera[:3, :3].T
@@ -79,13 +73,6 @@ def render(model: FusedModel, T_world_camera: np.ndarray, width: int = 480, heig
     shade = 0.35 + 0.65 * np.abs(np.sum(normal * dirs[seen], axis=1))
     image[seen] = np.clip(colour * shade[:, None], 0, 255).astype(np.uint8)
     return image
-
-
-def write_png(path: str | Path, rgb: np.ndarray) -> Path:
-    ok, data = cv2.imencode('.png', cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise OSError(f'could not encode {path}')
-    return atomic_write(path, lambda f: f.write(data.tobytes()))
 
 
 def labelled(image: np.ndarray, text: str) -> np.ndarray:

@@ -1,5 +1,7 @@
 """The volumetric sequence on disk: one PLY and one glTF binary per time step, and
-``sequence.json`` listing them with their capture stamps.
+``sequence.jsonl`` listing them with their capture stamps, one JSON line per time step,
+appended once the frame's files are in place (so a long take costs the same per frame; a
+reader skips a last line still being written).
 
 The GLB holds positions, 8-bit vertex colours (``COLOR_0``) and triangle indices, with an unlit
 material (``KHR_materials_unlit``) so web players (three.js, Babylon.js, model-viewer) show the
@@ -19,9 +21,9 @@ import pygltflib
 
 from volcap_core.files import atomic_write
 
-from .tsdf import FusedModel
+from .tsdf import FusedModel, colors_to_uint8
 
-MANIFEST = 'sequence.json'
+MANIFEST = 'sequence.jsonl'
 
 
 def glb_bytes(model: FusedModel) -> bytes:
@@ -101,14 +103,14 @@ def read_ply(path: str | Path) -> FusedModel:
     mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.vertices) == 0:
         raise ValueError(f'{path}: no mesh')
-    colors = np.round(np.asarray(mesh.vertex_colors) * 255).astype(np.uint8) if mesh.has_vertex_colors() else \
+    colors = colors_to_uint8(np.asarray(mesh.vertex_colors)) if mesh.has_vertex_colors() else \
         np.zeros((len(mesh.vertices), 3), np.uint8)
     return FusedModel(np.asarray(mesh.vertices, np.float32), colors, np.asarray(mesh.triangles, np.int32))
 
 
 class SequenceWriter:
-    """Writes ``NNNNNN.ply`` and ``NNNNNN.glb`` per time step into a folder and keeps
-    ``sequence.json`` (frame list with stamps and cameras) current."""
+    """Writes ``NNNNNN.ply`` and ``NNNNNN.glb`` per time step into a folder, and a line per
+    time step (stamp, cameras, files) to ``sequence.jsonl``."""
 
     def __init__(self, folder: str | Path, formats: tuple[str, ...] = ('ply', 'glb')):
         unknown = set(formats) - {'ply', 'glb'}
@@ -117,10 +119,12 @@ class SequenceWriter:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.formats = formats
-        self.frames: list[dict] = []
+        if (self.folder / MANIFEST).exists():
+            raise FileExistsError(f'{self.folder} already holds a sequence')
+        self.written = 0
 
     def write(self, model: FusedModel, stamp_ns: int, missing: list[str] | None = None) -> dict:
-        index = len(self.frames)
+        index = self.written
         entry = {'index': index, 'stamp_ns': int(stamp_ns), 'cameras': list(model.cameras),
                  'missing': list(missing or []), 'vertices': int(len(model.vertices)),
                  'triangles': int(len(model.triangles))}
@@ -129,9 +133,9 @@ class SequenceWriter:
         if 'glb' in self.formats:
             data = glb_bytes(model)
             entry['glb'] = atomic_write(self.folder / f'{index:06d}.glb', lambda f: f.write(data)).name
-        self.frames.append(entry)
-        doc = json.dumps({'frames': self.frames}, indent=1)
-        atomic_write(self.folder / MANIFEST, lambda f: f.write(doc), binary=False)
+        with open(self.folder / MANIFEST, 'a') as f:
+            f.write(json.dumps(entry) + '\n')
+        self.written += 1
         return entry
 
 
@@ -139,4 +143,10 @@ def read_manifest(folder: str | Path) -> list[dict]:
     path = Path(folder) / MANIFEST
     if not path.exists():
         raise FileNotFoundError(f'{folder} holds no volumetric sequence ({MANIFEST} missing)')
-    return json.loads(path.read_text())['frames']
+    frames = []
+    for line in path.read_text().splitlines():
+        try:
+            frames.append(json.loads(line))
+        except json.JSONDecodeError:
+            break          # the line a writer is still appending
+    return frames

@@ -10,6 +10,7 @@ floor a camera sees never reach the output.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -109,6 +110,9 @@ class FusedModel:
     cameras: list[str] = field(default_factory=list)
     timings_ms: dict = field(default_factory=dict)
 
+    def raycasting_scene(self) -> o3d.t.geometry.RaycastingScene:
+        return raycasting_scene(self.vertices, self.triangles)
+
     def legacy_mesh(self) -> o3d.geometry.TriangleMesh:
         mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.vertices.astype(np.float64)),
                                          o3d.utility.Vector3iVector(self.triangles))
@@ -126,9 +130,16 @@ class FusedModel:
             if len(simple.triangles) <= max_triangles:
                 break
             cell *= 2
-        return FusedModel(np.asarray(simple.vertices, np.float32),
-                          np.clip(np.round(np.asarray(simple.vertex_colors) * 255), 0, 255).astype(np.uint8),
+        return FusedModel(np.asarray(simple.vertices, np.float32), colors_to_uint8(np.asarray(simple.vertex_colors)),
                           np.asarray(simple.triangles, np.int32), self.cameras, self.timings_ms)
+
+
+def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    """An Open3D ray-casting / distance scene of one triangle mesh."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+    return scene
 
 
 def pinhole(model: CameraModel) -> CameraModel:
@@ -339,11 +350,10 @@ class TsdfFusion:
         vertices = mesh.vertex.positions.numpy()
         colors = mesh.vertex.colors.numpy() if 'colors' in mesh.vertex else np.zeros_like(vertices)
         triangles = mesh.triangle.indices.numpy().astype(np.int32)
-        return crop_to_box(vertices, _colors_to_uint8(colors), triangles, *box)
+        return crop_to_box(vertices, colors_to_uint8(colors), triangles, *box)
 
     def fuse(self, views: list[CameraView]) -> FusedModel:
         """One time step: a fresh volume, every view integrated, the mesh extracted."""
-        import time
         if not views:
             raise ValueError('no camera to fuse')
         t0 = time.perf_counter()
@@ -372,8 +382,9 @@ def convergence_point(poses: list[np.ndarray]) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
-def _colors_to_uint8(colors: np.ndarray) -> np.ndarray:
-    # Open3D integrates uint8 colour as 0-255 and divides by 255 when it extracts the mesh.
+def colors_to_uint8(colors: np.ndarray) -> np.ndarray:
+    """Open3D's 0-1 vertex colours (it integrates uint8 colour as 0-255 and divides by 255 when
+    it extracts the mesh) as uint8."""
     return np.clip(np.round(colors * 255.0), 0, 255).astype(np.uint8)
 
 
@@ -387,3 +398,23 @@ def crop_to_box(vertices: np.ndarray, colors: np.ndarray, triangles: np.ndarray,
     keep_tri = inside[triangles].all(axis=1)
     new_index = np.cumsum(inside) - 1
     return vertices[inside], colors[inside], new_index[triangles[keep_tri]].astype(np.int32)
+
+
+def bare_open3d_fusion(views: list[CameraView], cfg: FusionConfig, volume: o3d.t.geometry.VoxelBlockGrid | None = None
+                       ) -> FusedModel:
+    """The textbook Open3D integration of the same views, for comparison: each image as it
+    comes, pinhole intrinsics (lens distortion ignored), no crop, no capture box; a fresh
+    volume unless ``volume`` is given."""
+    vbg = volume if volume is not None else TsdfFusion(cfg).new_volume()
+    for v in views:
+        depth, color = o3d.t.geometry.Image(o3c.Tensor(v.depth_mm)), o3d.t.geometry.Image(o3c.Tensor(v.color))
+        depth_k, color_k = o3c.Tensor(v.depth_model.K), o3c.Tensor(v.color_model.K)
+        extrinsic = o3c.Tensor(invert(np.asarray(v.T_world_camera, np.float64)))
+        blocks = vbg.compute_unique_block_coordinates(depth, depth_k, extrinsic, 1000.0, cfg.depth_max,
+                                                      cfg.trunc_voxels)
+        vbg.integrate(blocks, depth, color, depth_k, color_k, extrinsic, 1000.0, cfg.depth_max, cfg.trunc_voxels)
+    mesh = vbg.extract_triangle_mesh(weight_threshold=cfg.weight_threshold).cpu()
+    if 'indices' not in mesh.triangle:
+        return FusedModel(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32))
+    return FusedModel(mesh.vertex.positions.numpy(), colors_to_uint8(mesh.vertex.colors.numpy()),
+                      mesh.triangle.indices.numpy().astype(np.int32), [v.name for v in views])

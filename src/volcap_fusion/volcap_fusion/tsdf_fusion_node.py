@@ -13,7 +13,7 @@ Fusion runs on a worker thread fed by a bounded drop-oldest queue, so a slow vol
 stalls the subscriptions: when fusion falls behind, the oldest waiting frame sets are dropped
 (and counted). Publishes ``/volcap/points`` (PointCloud2, world frame) and ``/volcap/mesh``
 (Marker TRIANGLE_LIST with vertex colours; decimated above ``marker_max_triangles``), and with
-``output_dir`` writes the volumetric sequence (PLY + GLB per time step, ``sequence.json``).
+``output_dir`` writes the volumetric sequence (PLY + GLB per time step, ``sequence.jsonl``).
 While a session phase is announced on ``/volcap/phase``, only the ``phases`` listed are fused.
 """
 from __future__ import annotations
@@ -135,14 +135,16 @@ class TsdfFusionNode(Node):
             self.destroy_subscription(sub)
         profile = qos.EVERY_FRAME if self.reliable else qos.SENSOR
         subs = []
+        # camera_info first: the executor serves ready subscriptions in creation order
         for cam in cameras:
-            for topic, stream in ((topics.DEPTH_CLEAN, 'depth'), (topics.COLOR_CORRECTED, 'color')):
-                subs.append(self.create_subscription(
-                    Image, f'/{cam}/{topic}', lambda m, c=cam, s=stream: self._on_image(c, s, m), profile))
             for topic, stream in ((topics.DEPTH_CLEAN_INFO, 'depth'), (topics.COLOR_INFO, 'color')):
                 subs.append(self.create_subscription(
                     CameraInfo, f'/{cam}/{topic}', lambda m, c=cam, s=stream: self.infos.__setitem__((c, s), m),
                     profile))
+        for cam in cameras:
+            for topic, stream in ((topics.DEPTH_CLEAN, 'depth'), (topics.COLOR_CORRECTED, 'color')):
+                subs.append(self.create_subscription(
+                    Image, f'/{cam}/{topic}', lambda m, c=cam, s=stream: self._on_image(c, s, m), profile))
         self.camera_subscriptions = subs
         self.cameras = cameras
         self.sync = FrameSetSynchronizer(cameras, ('depth', 'color'), tolerance_ns=self.tolerance_ns,
@@ -194,7 +196,7 @@ class TsdfFusionNode(Node):
 
     def _fuse(self, fs: FrameSet, calibration: Calibration) -> None:
         t0 = time.perf_counter()
-        views, problems = [], []
+        views, problems = [], {}
         for cam in self.cameras:
             depth_msg, color_msg = fs.get(cam, 'depth'), fs.get(cam, 'color')
             if depth_msg is None or color_msg is None:
@@ -202,10 +204,11 @@ class TsdfFusionNode(Node):
             try:
                 views.append(self._view(cam, depth_msg, color_msg, calibration))
             except (MessageConversionError, ValueError, KeyError) as e:
-                problems.append(f'{cam}: {e}')
-        missing = sorted({c for c, _ in fs.missing} | {p.split(':')[0] for p in problems})
+                problems[cam] = str(e)
+        missing = sorted({c for c, _ in fs.missing} | set(problems))
         if problems:
-            self.diagnostics.report('warn', 'cameras left out of frame set: ' + '; '.join(problems))
+            self.diagnostics.report('warn', 'cameras left out of frame set: '
+                                    + '; '.join(f'{c}: {e}' for c, e in problems.items()))
         if len(views) < self.min_cameras:
             self.stats['skipped'] += 1
             self.diagnostics.report('warn', f'frame set {fs.stamp_ns} skipped: {len(views)} of {len(self.cameras)} '
