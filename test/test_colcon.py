@@ -57,6 +57,7 @@ def test_install_layout(install):
         assert (install / pkg / 'share' / pkg / 'package.xml').exists()
     assert list((install / 'volcap_core').rglob('config/fastdds_volcap.xml'))
     assert list((install / 'volcap_calib').rglob('config/board.yaml'))
+    assert (install / 'volcap_bringup' / 'share' / 'volcap_bringup' / 'launch' / 'volcap.launch.py').exists()
 
 
 def run_installed(install, pkg, exe, params, data):

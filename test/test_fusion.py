@@ -171,3 +171,29 @@ def test_real_rgbd_frames_match_a_bare_open3d_integration(shared_data, tmp_path)
     assert len(poses) == 10 and len(ours.triangles) > 2000
     d = surface_distance(ours, bare)
     assert d['mean_mm'] < 0.5, d     # pinhole frames: the same integration (measured 0.00 mm)
+
+
+def test_observable_surface_excludes_what_the_sensor_drops():
+    """A point counts for completeness only where some camera could measure it: a sensor that
+    drops most returns around a point (dark material) does not see it; others still may."""
+    import open3d as o3d
+    from volcap_fusion.evaluate import dropout_rate, observable, surface_samples
+    from volcap_fusion.tsdf import raycasting_scene
+    sphere = o3d.geometry.TriangleMesh.create_sphere(RADIUS, 40)
+    points, normals = surface_samples(np.asarray(sphere.vertices), np.asarray(sphere.triangles), 20_000)
+    scene = raycasting_scene(np.asarray(sphere.vertices), np.asarray(sphere.triangles))
+    views = sphere_views(count=2)                  # opposite sides: each sees its own half
+    clear = np.zeros((LENS.height, LENS.width), bool)
+    dark = clear.copy()
+    dark[:, :LENS.width // 2] = True               # this sensor returns nothing on its left half
+    sensors = lambda first: [(v.depth_model, v.T_world_camera, v.color_model, v.T_world_camera, rate)  # noqa: E731
+                             for v, rate in zip(views, (dropout_rate(first), dropout_rate(clear)))]
+    seen = observable(points, normals, scene, sensors(clear), 0.25, 4.0, 0.12)
+    seen_dark = observable(points, normals, scene, sensors(dark), 0.25, 4.0, 0.12)
+    assert 0.6 < seen.mean() < 0.8                 # measured 0.69: two opposite cameras see most of a sphere
+    lost = seen & ~seen_dark
+    assert 0.12 < lost.mean() < 0.25               # measured 0.17: half of what the first camera sees
+    assert not (seen_dark & ~seen).any()
+    # what the dark half hides lies on the first camera's side, away from the second
+    eye0, eye1 = views[0].T_world_camera[:3, 3], views[1].T_world_camera[:3, 3]
+    assert np.all(np.linalg.norm(points[lost] - eye0, axis=1) < np.linalg.norm(points[lost] - eye1, axis=1))

@@ -27,10 +27,12 @@ from visualization_msgs.msg import Marker
 from volcap_core import qos, topics, transport
 from volcap_core.calibration import Calibration
 from volcap_core.conversions import stamp_to_ns
+from volcap_core.rig import Rig
 from volcap_driver.bag_io import BagReader
 from volcap_driver.frames import read_rig
 from volcap_driver.playback import cdr_stamp_ns
 
+from .graph import rig_graph
 from .processes import start_node, stop
 
 
@@ -83,21 +85,26 @@ class RunConfig:
     rate: float = 0.04                # bag playback speed; the graph must keep up with it to fuse every set
     composed: bool = False
     depth_upsample: int = 1
+    full_depth: bool = True           # cleaned depth at the colour resolution (False: the filter's half-size default)
     settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
 
 
-def graph_parameters(bag: Path, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str]
+def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str]
                      ) -> list[tuple[str, str, str, dict]]:
     """(package, executable, namespace, parameters) of every node of the graph."""
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True,
               'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
-    nodes = [('volcap_driver', 'bag_player', '', {'bag': str(bag), 'rate': cfg.rate, 'topics': played,
-                                                  'wait_for_subscribers': 60.0, 'exit_when_done': not cfg.composed})]
-    nodes += [('volcap_filter', 'depth_filter', c, {'reliable': True}) for c in cameras]
-    nodes += [('volcap_color', 'color_corrector', c, {'reliable': True}) for c in cameras]
-    nodes.append(('volcap_fusion', 'tsdf_fusion', '', fusion))
-    return nodes
+    player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,
+              'exit_when_done': not cfg.composed}
+    filters = {c: {'reliable': True} for c in cameras}
+    if cfg.full_depth:
+        # Half-size clean depth puts a 6 mm pixel footprint under 4 mm voxels (2.7 mm accuracy
+        # on the demo bag, 1.3 mm at full size), for 5 ms more cleaning per camera.
+        for c in cameras:
+            color = rig.camera(c).color
+            filters[c].update(output_width=color.width, output_height=color.height)
+    return rig_graph(cameras, ('volcap_driver', 'bag_player', player), filters, {'reliable': True}, fusion)
 
 
 def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cfg: RunConfig,
@@ -119,7 +126,7 @@ def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cf
     played = [topics.camera_topic(c, t) for c in cameras
               for t in (topics.COLOR_IMAGE, topics.COLOR_INFO, topics.DEPTH_IMAGE, topics.DEPTH_INFO)]
     played += [topics.RIG, topics.PHASE]
-    nodes = graph_parameters(bag, cameras, frames_dir, cfg, played)
+    nodes = graph_parameters(bag, rig, cameras, frames_dir, cfg, played)
     transport.configure()
     rclpy.init()
     executor = SingleThreadedExecutor()

@@ -6,10 +6,14 @@ to the synthetic bag's ground truth, and scored against the subject mesh at that
 - accuracy: mean distance (mm) from the fused mesh's vertices to the ground-truth surface;
 - completeness: the fraction of the *observable* ground-truth surface within 5 mm of the fused
   mesh. Observable means that at least one camera's depth sensor sees the point (inside its
-  image and range, not occluded, not at a grazing angle beyond what the sensor measures) and
-  the point lies in that camera's colour image (the cleaned depth is registered to colour). The
+  image and range, not occluded, not at a grazing angle beyond what the sensor measures, not on
+  a surface too dark in the infrared for the sensor to return depth from most of it) and the
+  point lies in that camera's colour image (the cleaned depth is registered to colour). The
   synthetic subject is a union of overlapping solids whose inner faces no camera can see, and
   the soles rest on the floor; ``completeness_all`` scores the whole mesh for reference.
+
+``raw_fusion``: a bag's frame set fused straight from the raw streams, for the raw-vs-clean
+figure of `volcap run` (paper 000, Figs. 16 and 18).
 
 `volcap fuse-frames FOLDER`: the ``frame-NNNNNN.{color.png,depth.png,pose.txt}`` layout (one
 moving camera, e.g. ``../shared/data/rgbd_box``) fused with ``TsdfFusion``, plus a bare Open3D
@@ -32,6 +36,8 @@ from .tsdf import (CameraView, FusedModel, FusionConfig, TsdfFusion, bare_open3d
                    raycasting_scene)
 
 COMPLETENESS_MM = 5.0
+DROPOUT_WINDOW_PX = 7       # neighbourhood over which a sensor's dropout rate is judged
+MAX_DROPOUT_RATE = 0.5      # a point is unmeasurable where the sensor drops most returns around it
 
 
 def surface_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, seed: int = 0
@@ -49,13 +55,19 @@ def surface_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, see
     return points, normals
 
 
+def dropout_rate(dropped: np.ndarray) -> np.ndarray:
+    """Local fraction of a depth image's pixels for which the sensor returned nothing (dark
+    material, grazing angle), over ``DROPOUT_WINDOW_PX`` squares."""
+    return cv2.blur(dropped.astype(np.float32), (DROPOUT_WINDOW_PX, DROPOUT_WINDOW_PX))
+
+
 def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.RaycastingScene,
-               sensors: list[tuple[CameraModel, np.ndarray, CameraModel, np.ndarray]], min_range: float,
-               max_range: float, grazing_cos: float) -> np.ndarray:
+               sensors: list[tuple[CameraModel, np.ndarray, CameraModel, np.ndarray, np.ndarray | None]],
+               min_range: float, max_range: float, grazing_cos: float) -> np.ndarray:
     """Which points some camera measures: ``sensors`` holds per camera (depth model,
-    T_world_depth, colour model, T_world_color)."""
+    T_world_depth, colour model, T_world_color, the depth image's ``dropout_rate`` or None)."""
     seen = np.zeros(len(points), bool)
-    for depth_model, T_wd, color_model, T_wc in sensors:
+    for depth_model, T_wd, color_model, T_wc, dropouts in sensors:
         eye = T_wd[:3, 3]
         ray = points - eye
         dist = np.linalg.norm(ray, axis=1)
@@ -70,6 +82,9 @@ def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.Ra
             px[front] = model.project(local[front])
             ok &= front & (px[:, 0] >= 0) & (px[:, 0] <= model.width - 1) & (px[:, 1] >= 0) \
                 & (px[:, 1] <= model.height - 1)
+            if model is depth_model and dropouts is not None:
+                u, v = (np.round(px[ok, k]).astype(np.int64) for k in (0, 1))
+                ok[ok] = dropouts[v, u] < MAX_DROPOUT_RATE
         rays = np.concatenate([np.broadcast_to(eye, ray.shape), ray], axis=1).astype(np.float32)
         hit = scene.cast_rays(o3d.core.Tensor(rays))['t_hit'].numpy()
         ok &= hit >= dist - 0.002
@@ -110,14 +125,17 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
     if not entries or not len(stamps):
         raise ValueError(f'nothing to score: {len(entries)} fused frames, {len(stamps)} ground-truth subject frames')
     rig = gt.rig
-    sensors = [(c.depth, gt.T_world_depth(c.name), c.color, gt.T_world_color(c.name)) for c in rig.cameras]
     tof = gt.doc['config']['tof']
     per_frame = []
     for entry in tqdm(entries, desc='scoring fused frames', unit='frame', disable=not progress):
         nearest = int(stamps[np.argmin(np.abs(stamps - entry['stamp_ns']))])
         if abs(nearest - entry['stamp_ns']) > 20_000_000:
             raise ValueError(f'fused frame {entry["index"]} (stamp {entry["stamp_ns"]}) has no ground-truth frame')
-        truth = gt.subject_mesh(by_stamp[nearest]['index'])
+        index = by_stamp[nearest]['index']
+        truth = gt.subject_mesh(index)
+        arrays = gt.arrays(index)
+        sensors = [(c.depth, gt.T_world_depth(c.name), c.color, gt.T_world_color(c.name),
+                    dropout_rate(arrays[f'{c.name}/dropped'])) for c in rig.cameras]
         row = score_frame(read_ply(frames_dir / entry['ply']), truth, sensors, tof)
         per_frame.append({'index': entry['index'], 'stamp_ns': entry['stamp_ns'], **row})
     acc = [r['accuracy_mm'] for r in per_frame if r['accuracy_mm'] is not None]
@@ -125,6 +143,32 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
             'completeness': float(np.mean([r['completeness'] for r in per_frame])),
             'completeness_all': float(np.mean([r['completeness_all'] for r in per_frame])),
             'completeness_threshold_mm': COMPLETENESS_MM, 'frames': len(per_frame), 'per_frame': per_frame}
+
+
+def raw_fusion(bag: str | Path, stamp_ns: int, T_world_color: dict[str, np.ndarray], cfg: FusionConfig,
+               tolerance_ns: int = 20_000_000) -> FusedModel:
+    """The frame set of ``bag`` at ``stamp_ns`` fused as it left the cameras (paper 000,
+    Figs. 16 and 18, left): raw depth registered to colour with nothing removed, raw colour."""
+    from volcap_core.topics import CAPTURE
+    from volcap_driver.bag_io import BagReader
+    from volcap_driver.frames import frame_sets, read_rig
+    from volcap_filter.registration import DepthRegistration
+    with BagReader(bag) as reader:
+        rig = read_rig(reader)
+    for fs in frame_sets(bag, phases=(CAPTURE,)):
+        if abs(fs.stamp_ns - stamp_ns) > tolerance_ns:
+            continue
+        views = []
+        for name, f in fs.cameras.items():
+            if name not in T_world_color:
+                continue
+            c = f.color_model
+            registered = DepthRegistration(f.depth_model, c, rig.camera(name).T_color_depth,
+                                           (c.width, c.height)).register(f.depth).depth
+            depth_mm = np.clip(np.round(registered * 1000), 0, 65535).astype(np.uint16)
+            views.append(CameraView(name, depth_mm, c, f.color, c, T_world_color[name]))
+        return TsdfFusion(cfg).fuse(views)
+    raise ValueError(f'{bag} has no capture frame set at {stamp_ns} ns')
 
 
 # posed RGB-D frame folders ------------------------------------------------------------------

@@ -239,7 +239,11 @@ def _resample_depth(depth_mm, map_x, map_y, x0, y0, x1, y1, tolerance_mm, units_
             x, y = map_x[y0 + r, x0 + c], map_y[y0 + r, x0 + c]
             if not (x > -0.5 and y > -0.5 and x < w - 0.5 and y < h - 0.5):
                 continue
-            ix, iy = min(max(int(np.floor(x)), 0), w - 2), min(max(int(np.floor(y)), 0), h - 2)
+            # x, y > -0.5 here, so int() truncation is floor() (and far cheaper)
+            nearest = depth_mm[int(y + 0.5), int(x + 0.5)]
+            if nearest == 0:        # no depth here: nothing to interpolate (most of a crop)
+                continue
+            ix, iy = min(int(x), w - 2), min(int(y), h - 2)
             fx, fy = min(max(x - ix, 0.0), 1.0), min(max(y - iy, 0.0), 1.0)
             a, b = np.float32(depth_mm[iy, ix]), np.float32(depth_mm[iy, ix + 1])
             cc, d = np.float32(depth_mm[iy + 1, ix]), np.float32(depth_mm[iy + 1, ix + 1])
@@ -247,7 +251,7 @@ def _resample_depth(depth_mm, map_x, map_y, x0, y0, x1, y1, tolerance_mm, units_
             if lo > 0 and hi - lo <= tolerance_mm + 0.01 * hi:
                 z = (a * (1 - fx) + b * fx) * (1 - fy) + (cc * (1 - fx) + d * fx) * fy
             else:
-                z = np.float32(depth_mm[int(np.floor(y + 0.5)), int(np.floor(x + 0.5))])
+                z = np.float32(nearest)
             out[r, c] = min(np.float32(65535.0), z * units_per_mm + np.float32(0.5))
     return out
 

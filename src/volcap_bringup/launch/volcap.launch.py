@@ -1,0 +1,46 @@
+"""The volcap graph on a rig: calibration service (publishes calibration.yaml on start), one
+depth_filter and one color_corrector per camera namespace, and tsdf_fusion; optionally the bag
+player as the frame source instead of camera drivers.
+
+    ros2 launch volcap_bringup volcap.launch.py calibration:=/rig/calibration.yaml \\
+        cameras:=8 output_dir:=/captures/take1 [bag:=/captures/studio] [voxel_size:=0.004]
+
+The node list comes from ``volcap_bringup.graph.rig_graph``, the one `volcap run` starts.
+"""
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+from volcap_bringup.graph import rig_graph
+
+ARGUMENTS = {
+    'cameras': ('8', 'number of camera namespaces cam0..camN-1'),
+    'calibration': ('calibration.yaml', 'rig calibration; the calibration service publishes it on start'),
+    'bag': ('', 'a recorded session to replay as the frame source (empty: camera drivers run elsewhere)'),
+    'rate': ('1.0', 'bag playback speed'),
+    'voxel_size': ('0.004', 'TSDF voxel size (m)'),
+    'output_dir': ('', 'write the PLY/GLB sequence here (empty: publish only)'),
+    'depth_width': ('1280', 'cleaned depth width (the colour width: full resolution; 0: half the colour size)'),
+    'depth_height': ('720', 'cleaned depth height'),
+    'device': ('auto', 'fusion device: auto, CPU:0 or CUDA:0'),
+}
+
+
+def _nodes(context):
+    arg = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
+    cameras = [f'cam{i}' for i in range(int(arg['cameras']))]
+    source = None
+    if arg['bag']:
+        source = ('volcap_driver', 'bag_player', {'bag': arg['bag'], 'rate': float(arg['rate'])})
+    depth_size = {'output_width': int(arg['depth_width']), 'output_height': int(arg['depth_height'])}
+    fusion = {'voxel_size': float(arg['voxel_size']), 'output_dir': arg['output_dir'], 'device': arg['device']}
+    graph = rig_graph(cameras, source, {c: depth_size for c in cameras}, {}, fusion,
+                      calibration_service={'output': arg['calibration']})
+    return [Node(package=package, executable=executable, namespace=namespace or None, parameters=[params],
+                 output='screen') for package, executable, namespace, params in graph]
+
+
+def generate_launch_description():
+    return LaunchDescription([DeclareLaunchArgument(name, default_value=default, description=text)
+                              for name, (default, text) in ARGUMENTS.items()] + [OpaqueFunction(function=_nodes)])
