@@ -26,6 +26,7 @@ import numpy as np
 from colour_stage import median_ms
 from volcap_core import transport
 from volcap_core.calibration import Calibration
+from volcap_core.camera import depth_to_millimetres
 from volcap_core.topics import CAPTURE, CLEAN_PLATE
 from volcap_driver.bag_io import BagReader
 from volcap_driver.frames import frame_sets, read_rig
@@ -55,7 +56,7 @@ def capture_views(bag: str, calibration: Calibration, count: int) -> list[list[C
                 cleaner.learn_background(f.color, f.depth)
                 continue
             result = cleaner.process(f.color, f.depth)
-            depth_mm = np.clip(np.round(result.depth * 1000), 0, 65535).astype(np.uint16)
+            depth_mm = depth_to_millimetres(result.depth)
             views.append(CameraView(name, depth_mm, cleaner.output_model, f.color, f.color_model,
                                     calibration.T_world_color(name)))
         if views:

@@ -74,3 +74,11 @@ def test_pose_conventions():
     assert target_cam[:2] == pytest.approx([0, 0], abs=1e-12) and target_cam[2] > 0
     xyz, q = to_xyz_quat(T)
     assert np.allclose(from_xyz_quat(xyz, q), T)
+
+
+def test_depth_to_millimetres_marks_invalid_depth_as_none():
+    from volcap_core.camera import depth_to_millimetres
+    metres = np.array([[1.2344, 1.2346, np.nan, np.inf], [-0.5, 0.0, 70.0, 0.0004]], np.float32)
+    mm = depth_to_millimetres(metres)
+    assert mm.dtype == np.uint16
+    assert mm.tolist() == [[1234, 1235, 0, 0], [0, 0, 65535, 0]]

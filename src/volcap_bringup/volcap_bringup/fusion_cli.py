@@ -14,7 +14,8 @@ def _renders(models: list[tuple[str, object]], poses: list[np.ndarray], path: Pa
     from volcap_filter.figures import write_png
     from volcap_fusion.render import camera_up, orbit_views, turntable
     up = camera_up(poses)
-    rows = [turntable(m, orbit_views(frame_on or m, up), label=label) for label, m in models if len(m.triangles)]
+    rows = [turntable(m, orbit_views(m if frame_on is None else frame_on, up), label=label)
+            for label, m in models if len(m.triangles)]
     if not rows:
         raise ValueError('nothing to render: every mesh is empty')
     write_png(path, np.vstack(rows))

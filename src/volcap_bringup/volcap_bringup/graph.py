@@ -3,16 +3,16 @@
 same list on a full ROS install. No rclpy here, so a launch file can import it."""
 from __future__ import annotations
 
-Node = tuple[str, str, str, dict]     # (package, executable, namespace, parameters)
+NodeSpec = tuple[str, str, str, dict]     # (package, executable, namespace, parameters)
 
 
 def rig_graph(cameras: list[str], source: tuple[str, str, dict] | None, filters: dict[str, dict],
-              corrector: dict, fusion: dict, calibration_service: dict | None = None) -> list[Node]:
+              corrector: dict, fusion: dict, calibration_service: dict | None = None) -> list[NodeSpec]:
     """Every node of one rig's graph in start order: the frame source (a camera driver or the
     bag player, None when the cameras run elsewhere), the calibration service when given, one
     depth_filter (``filters[camera]``) and one color_corrector per camera namespace, and the
     fusion."""
-    nodes: list[Node] = []
+    nodes: list[NodeSpec] = []
     if source is not None:
         package, executable, params = source
         nodes.append((package, executable, '', dict(params)))

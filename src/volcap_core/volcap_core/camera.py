@@ -115,3 +115,10 @@ def camera_from_k4a(params: list[float], mode: tuple) -> CameraModel:
     cx, cy, fx, fy, k1, k2, k3, k4, k5, k6, _codx, _cody, p2, p1 = params[:14]
     return CameraModel(w, h, fx * bw, fy * bh, cx * bw - ox - 0.5, cy * bh - oy - 0.5,
                        (k1, k2, p1, p2, k3, k4, k5, k6))
+
+
+def depth_to_millimetres(depth_m: np.ndarray) -> np.ndarray:
+    """A depth image in metres as uint16 millimetres (the 16UC1 convention, 0 = no depth):
+    NaN, infinite and negative values become 0, depth beyond 65.535 m is clipped."""
+    d = np.nan_to_num(np.asarray(depth_m, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16)

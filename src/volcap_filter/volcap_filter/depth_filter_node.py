@@ -26,6 +26,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from volcap_core import qos, topics
+from volcap_core.camera import depth_to_millimetres
 from volcap_core.conversions import (MessageConversionError, camera_info_to_model, camera_model_to_info,
                                      color_to_rgb, depth_to_metres, numpy_to_image, points_to_pointcloud2,
                                      stamp_to_ns)
@@ -244,7 +245,7 @@ class DepthFilter(Node):
             return
         stamp = stamp_to_ns(color_msg.header.stamp)
         frame = color_msg.header.frame_id
-        mm = np.clip(np.round(result.depth * 1000.0), 0, 65535).astype(np.uint16)
+        mm = depth_to_millimetres(result.depth)
         self.pub_depth.publish(numpy_to_image(mm, '16UC1', stamp, frame))
         self.pub_info.publish(camera_model_to_info(cleaner.output_model, stamp, frame))
         if self.publish_points:

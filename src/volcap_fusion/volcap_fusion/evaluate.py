@@ -28,7 +28,7 @@ import numpy as np
 import open3d as o3d
 from tqdm import tqdm
 
-from volcap_core.camera import CameraModel
+from volcap_core.camera import CameraModel, depth_to_millimetres
 from volcap_core.poses import invert
 
 from .sequence import read_manifest, read_ply
@@ -74,7 +74,7 @@ def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.Ra
         ray /= dist[:, None]
         ok = (dist >= min_range) & (dist <= max_range)
         ok &= np.abs(np.sum(normals * ray, axis=1)) >= grazing_cos     # meshes' normals may face either way
-        for model, T in ((depth_model, T_wd), (color_model, T_wc)):
+        for model, T, rates in ((depth_model, T_wd, dropouts), (color_model, T_wc, None)):
             T_local = invert(T)
             local = points @ T_local[:3, :3].T + T_local[:3, 3]
             front = local[:, 2] > 0.05
@@ -82,9 +82,9 @@ def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.Ra
             px[front] = model.project(local[front])
             ok &= front & (px[:, 0] >= 0) & (px[:, 0] <= model.width - 1) & (px[:, 1] >= 0) \
                 & (px[:, 1] <= model.height - 1)
-            if model is depth_model and dropouts is not None:
+            if rates is not None:
                 u, v = (np.round(px[ok, k]).astype(np.int64) for k in (0, 1))
-                ok[ok] = dropouts[v, u] < MAX_DROPOUT_RATE
+                ok[ok] = rates[v, u] < MAX_DROPOUT_RATE
         rays = np.concatenate([np.broadcast_to(eye, ray.shape), ray], axis=1).astype(np.float32)
         hit = scene.cast_rays(o3d.core.Tensor(rays))['t_hit'].numpy()
         ok &= hit >= dist - 0.002
@@ -147,8 +147,8 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
 
 def raw_fusion(bag: str | Path, stamp_ns: int, T_world_color: dict[str, np.ndarray], cfg: FusionConfig,
                tolerance_ns: int = 20_000_000) -> FusedModel:
-    """The frame set of ``bag`` at ``stamp_ns`` fused as it left the cameras (paper 000,
-    Figs. 16 and 18, left): raw depth registered to colour with nothing removed, raw colour."""
+    """The frame set of ``bag`` at ``stamp_ns`` fused as it left the cameras (the "before" of
+    paper 000, Figs. 16 and 18): raw depth registered to colour with nothing removed, raw colour."""
     from volcap_core.topics import CAPTURE
     from volcap_driver.bag_io import BagReader
     from volcap_driver.frames import frame_sets, read_rig
@@ -165,7 +165,7 @@ def raw_fusion(bag: str | Path, stamp_ns: int, T_world_color: dict[str, np.ndarr
             c = f.color_model
             registered = DepthRegistration(f.depth_model, c, rig.camera(name).T_color_depth,
                                            (c.width, c.height)).register(f.depth).depth
-            depth_mm = np.clip(np.round(registered * 1000), 0, 65535).astype(np.uint16)
+            depth_mm = depth_to_millimetres(registered)
             views.append(CameraView(name, depth_mm, c, f.color, c, T_world_color[name]))
         return TsdfFusion(cfg).fuse(views)
     raise ValueError(f'{bag} has no capture frame set at {stamp_ns} ns')

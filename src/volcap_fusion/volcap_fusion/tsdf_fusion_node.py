@@ -32,6 +32,7 @@ from visualization_msgs.msg import Marker
 
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
+from volcap_core.camera import depth_to_millimetres
 from volcap_core.conversions import (MessageConversionError, camera_info_to_model, color_to_rgb, depth_to_metres,
                                      image_to_numpy, mesh_to_marker_cdr, points_to_pointcloud2, stamp_to_ns)
 from volcap_core.ros import Diagnostics, declare, run_node
@@ -236,7 +237,7 @@ class TsdfFusionNode(Node):
         if depth_msg.encoding == '16UC1':
             depth_mm = image_to_numpy(depth_msg)
         else:   # 32FC1 metres (NaN = no depth), or a clear error for anything else
-            depth_mm = np.clip(np.round(depth_to_metres(depth_msg) * 1000.0), 0, 65535).astype(np.uint16)
+            depth_mm = depth_to_millimetres(depth_to_metres(depth_msg))
         return CameraView(cam, depth_mm, camera_info_to_model(infos[0]), color_to_rgb(color_msg),
                           camera_info_to_model(infos[1]), calibration.T_world_color(cam))
 

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from volcap_core.camera import CameraModel
+from volcap_core.camera import CameraModel, depth_to_millimetres
 from volcap_core.poses import invert, transform_points
 from volcap_core.sampling import sample_bilinear
 
@@ -277,7 +277,7 @@ class CameraView:
         flying = self._mixed_pixels(z, measured, full, tof, rng)
         dropped &= ~flying   # a mixed pixel reports a depth even where its centre surface would not
         speckle = _speckle(measured, flying, tof, rng)
-        depth_mm = np.clip(np.round(np.maximum(measured, 0.0) * 1000.0), 0, 65535).astype(np.uint16)
+        depth_mm = depth_to_millimetres(measured)
         return DepthRender(depth_mm, clean, flying, speckle & (depth_mm > 0), dropped, obj.reshape(h, w))
 
     def _mixed_pixels(self, z, measured, full: SceneRaycaster, tof: 'ToFModel', rng) -> np.ndarray:
