@@ -233,6 +233,7 @@ def test_bunny_scene_and_bad_options(tmp_path, shared_data):
                                                    scene='bunny'), progress=False)
     gt = GroundTruth(s.path)
     assert gt.arrays(0)['cam0/depth_subject'].sum() > 1000
+    assert set(gt.arrays(0, suffix='/dropped')) == {f'cam{i}/dropped' for i in range(len(gt.rig.cameras))}
     with pytest.raises(ValueError, match='scene'):
         SynthConfig(scene='dragon')
     with pytest.raises(FileNotFoundError, match='VOLCAP_DATA'):

@@ -133,9 +133,9 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
             raise ValueError(f'fused frame {entry["index"]} (stamp {entry["stamp_ns"]}) has no ground-truth frame')
         index = by_stamp[nearest]['index']
         truth = gt.subject_mesh(index)
-        arrays = gt.arrays(index)
+        dropped = gt.arrays(index, suffix='/dropped')
         sensors = [(c.depth, gt.T_world_depth(c.name), c.color, gt.T_world_color(c.name),
-                    dropout_rate(arrays[f'{c.name}/dropped'])) for c in rig.cameras]
+                    dropout_rate(dropped[f'{c.name}/dropped'])) for c in rig.cameras]
         row = score_frame(read_ply(frames_dir / entry['ply']), truth, sensors, tof)
         per_frame.append({'index': entry['index'], 'stamp_ns': entry['stamp_ns'], **row})
     acc = [r['accuracy_mm'] for r in per_frame if r['accuracy_mm'] is not None]

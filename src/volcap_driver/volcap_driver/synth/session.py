@@ -193,9 +193,11 @@ class GroundTruth:
     def frames_in(self, phase: str) -> list[dict]:
         return [f for f in self.frames if f['phase'] == phase]
 
-    def arrays(self, index: int) -> dict[str, np.ndarray]:
+    def arrays(self, index: int, suffix: str = '') -> dict[str, np.ndarray]:
+        """The frame's ground-truth arrays (``camN/name``), only those ending in ``suffix`` if given
+        (an npz member is read only when asked for)."""
         with np.load(self.dir / 'frames' / f'{index:06d}.npz') as npz:
-            return {k: npz[k] for k in npz.files}
+            return {k: npz[k] for k in npz.files if k.endswith(suffix)}
 
     def subject_mesh(self, index: int) -> o3d.geometry.TriangleMesh:
         """The subject mesh in the world frame at capture frame ``index``."""
