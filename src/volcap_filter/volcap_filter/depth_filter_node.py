@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections import deque
 from dataclasses import fields
 from pathlib import Path
 
@@ -115,6 +116,12 @@ class DepthFilter(Node):
         self.figures_requested = False
         self.processed = self.skipped = 0
         self.last_ms = 0.0
+        # Image pairs that came before their camera_info or the rig (other topics, so no ordering
+        # across them is guaranteed), each with the phase it arrived in; a late clean-plate frame
+        # must still be learnt, not lost.
+        self.held: deque[tuple[Image, Image, str | None]] = deque()
+        self.max_held = declare(self, 'max_held_frames', 4, 'image pairs kept while their camera_info or the '
+                                'rig is still to come', 0, 100, read_only=True)
 
         # Created before the image subscriptions: the executor serves ready subscriptions in
         # creation order, so a phase change or camera_info sent with a frame is seen before it.
@@ -122,10 +129,8 @@ class DepthFilter(Node):
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         inputs = qos.EVERY_FRAME if declare(self, 'reliable', False, 'subscribe reliably (offline replay: lose no '
                                             'frame)', read_only=True) else qos.SENSOR
-        self.create_subscription(CameraInfo, topics.COLOR_INFO, lambda m: self.infos.__setitem__('color', m),
-                                 inputs)
-        self.create_subscription(CameraInfo, topics.DEPTH_INFO, lambda m: self.infos.__setitem__('depth', m),
-                                 inputs)
+        self.create_subscription(CameraInfo, topics.COLOR_INFO, lambda m: self._on_info(m, 'color'), inputs)
+        self.create_subscription(CameraInfo, topics.DEPTH_INFO, lambda m: self._on_info(m, 'depth'), inputs)
         self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), inputs)
         self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), inputs)
         self.pub_depth = self.create_publisher(Image, topics.DEPTH_CLEAN, qos.DRIVER)
@@ -183,6 +188,7 @@ class DepthFilter(Node):
             return
         self.rig = rig
         self.cleaner = None   # rebuilt with the new extrinsic on the next frame
+        self._process_held()
 
     def _on_phase(self, msg: String) -> None:
         try:
@@ -193,8 +199,8 @@ class DepthFilter(Node):
             self.background = BackgroundModel()
             if self.cleaner is not None:
                 self.cleaner.background = self.background
-        elif self.phase == topics.CLEAN_PLATE and phase != topics.CLEAN_PLATE:
-            self._clean_plate_done()
+        elif self.phase == topics.CLEAN_PLATE and phase != topics.CLEAN_PLATE and not self._plate_frames_held():
+            self._clean_plate_done()   # else once the held clean-plate frames are learnt
         self.phase = phase
 
     def _on_capture_clean_plate(self, request, response):
@@ -212,31 +218,69 @@ class DepthFilter(Node):
         response.message = f'the next processed frame goes to {self.figure_dir}'
         return response
 
+    def _on_info(self, msg: CameraInfo, stream: str) -> None:
+        self.infos[stream] = msg
+        self._process_held()
+
     def _on_image(self, msg: Image, stream: str) -> None:
         for fs in self.sync.add(self.camera, stamp_to_ns(msg.header.stamp), msg, stream=stream,
                                 now_ns=time.monotonic_ns()):
             if fs.complete:
-                self._process(fs.get(self.camera, 'color'), fs.get(self.camera, 'depth'))
+                self.held.append((fs.get(self.camera, 'color'), fs.get(self.camera, 'depth'), self.phase))
+                self._process_held()
             else:
                 self.skipped += 1
                 self.diagnostics.report('warn', f'{self.camera}: no matching {fs.missing[0][1]} image for stamp '
                                                 f'{fs.stamp_ns}; frame skipped')
 
     # processing ---------------------------------------------------------------------------
-    def _process(self, color_msg: Image, depth_msg: Image) -> None:
+    def _waiting_for(self, color_msg: Image, depth_msg: Image) -> str | None:
+        """What a frame still needs before it can be cleaned, or None."""
+        if 'color' not in self.infos or 'depth' not in self.infos:
+            return 'no camera_info yet'
+        if depth_msg.header.frame_id != color_msg.header.frame_id and self.rig is None:
+            return f'waiting for the rig on /{topics.RIG} (depth-to-colour extrinsic)'
+        return None
+
+    def _plate_frames_held(self) -> bool:
+        return any(phase == topics.CLEAN_PLATE for _, _, phase in self.held)
+
+    def _late_plate_frame_done(self, phase: str | None) -> None:
+        """A held clean-plate frame was learnt or dropped after its phase ended: the plate is
+        complete once no other is held."""
+        if phase == topics.CLEAN_PLATE and self.phase != topics.CLEAN_PLATE and not self._plate_frames_held():
+            self._clean_plate_done()
+
+    def _process_held(self) -> None:
+        while self.held:
+            color_msg, depth_msg, phase = self.held[0]
+            waiting = self._waiting_for(color_msg, depth_msg)
+            if waiting is None:
+                self.held.popleft()
+                self._process(color_msg, depth_msg, phase)
+            elif len(self.held) > self.max_held:
+                self.held.popleft()
+                self.skipped += 1
+                self.diagnostics.report('warn', f'{self.camera}: {waiting}; frame skipped')
+                self._late_plate_frame_done(phase)
+            else:
+                self.diagnostics.report('warn', f'{self.camera}: {waiting}; {len(self.held)} frame(s) held')
+                return
+
+    def _process(self, color_msg: Image, depth_msg: Image, phase: str | None) -> None:
         t0 = time.perf_counter()
         try:
             cleaner = self._cleaner(color_msg, depth_msg)
-            if cleaner is None:
-                return
             color = color_to_rgb(color_msg)
             depth = depth_to_metres(depth_msg)
-            if self.phase == topics.CLEAN_PLATE or self.learn_remaining > 0:
+            if phase == topics.CLEAN_PLATE or self.learn_remaining > 0:
                 cleaner.learn_background(color, depth)
                 if self.learn_remaining > 0:
                     self.learn_remaining -= 1
                     if self.learn_remaining == 0:
                         self._clean_plate_done()
+                else:
+                    self._late_plate_frame_done(phase)
                 return
             result = cleaner.process(color, depth)
         except (MessageConversionError, ValueError) as e:
@@ -246,8 +290,9 @@ class DepthFilter(Node):
         stamp = stamp_to_ns(color_msg.header.stamp)
         frame = color_msg.header.frame_id
         mm = depth_to_millimetres(result.depth)
-        self.pub_depth.publish(numpy_to_image(mm, '16UC1', stamp, frame))
+        # camera_info first, so a subscriber rarely sees the image before it
         self.pub_info.publish(camera_model_to_info(cleaner.output_model, stamp, frame))
+        self.pub_depth.publish(numpy_to_image(mm, '16UC1', stamp, frame))
         if self.publish_points:
             xyz, rgb = cleaner.points(result)
             self.pub_points.publish(points_to_pointcloud2(xyz, rgb, stamp, frame))
@@ -256,17 +301,8 @@ class DepthFilter(Node):
         self.processed += 1
         self.last_ms = (time.perf_counter() - t0) * 1000.0
 
-    def _cleaner(self, color_msg: Image, depth_msg: Image) -> DepthCleaner | None:
-        if 'color' not in self.infos or 'depth' not in self.infos:
-            self.skipped += 1
-            self.diagnostics.report('warn', f'{self.camera}: no camera_info yet; frame skipped')
-            return None
+    def _cleaner(self, color_msg: Image, depth_msg: Image) -> DepthCleaner:
         registered = depth_msg.header.frame_id == color_msg.header.frame_id
-        if not registered and self.rig is None:
-            self.skipped += 1
-            self.diagnostics.report('warn', f'{self.camera}: waiting for the rig on /{topics.RIG} '
-                                            '(depth-to-colour extrinsic); frame skipped')
-            return None
         color_model = camera_info_to_model(self.infos['color'])
         depth_model = camera_info_to_model(self.infos['depth'])
         c = self.cleaner
