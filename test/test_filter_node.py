@@ -9,6 +9,7 @@ from std_msgs.msg import String
 
 from volcap_bringup.processes import start_node
 from volcap_core import qos, topics
+from volcap_core.camera import depth_to_millimetres
 from volcap_core.conversions import (camera_model_to_info, image_to_numpy, numpy_to_image,
                                      pointcloud2_to_points, stamp_to_ns)
 from volcap_driver.frames import frame_sets
@@ -99,7 +100,7 @@ def test_bad_frames_are_reported_and_skipped(studio_bag, ros_context, procs):
                     return True
             return False
 
-        good = np.round(frame.depth * 1000).astype(np.uint16)
+        good = depth_to_millimetres(frame.depth)
         assert reported('no camera_info yet', good, infos=False)
         assert reported('waiting for the rig', good)
         rig_pub.publish(String(data=rig.to_yaml()))
@@ -126,8 +127,7 @@ def test_frames_that_come_before_their_camera_info_are_held_not_lost(studio_bag,
 
     def images(f, stamp):
         pubs[topics.COLOR_IMAGE].publish(numpy_to_image(f.color, 'rgb8', stamp, color_frame))
-        pubs[topics.DEPTH_IMAGE].publish(numpy_to_image(np.round(f.depth * 1000).astype(np.uint16), '16UC1',
-                                                        stamp, depth_frame))
+        pubs[topics.DEPTH_IMAGE].publish(numpy_to_image(depth_to_millimetres(f.depth), '16UC1', stamp, depth_frame))
 
     def infos(f, stamp):
         pubs[topics.COLOR_INFO].publish(camera_model_to_info(f.color_model, stamp, color_frame))
@@ -142,7 +142,8 @@ def test_frames_that_come_before_their_camera_info_are_held_not_lost(studio_bag,
         rig_pub.publish(String(data=rig.to_yaml()))
         phase_pub.publish(String(data=f'phase: {topics.CLEAN_PLATE}'))
         procs.append(start_node('volcap_filter', 'depth_filter', {'reliable': True}, namespace=cam))
-        assert _inputs_matched(probe, pubs)
+        assert _inputs_matched(probe, pubs) and probe.spin_until(
+            lambda: rig_pub.get_subscription_count() and phase_pub.get_subscription_count(), 30)
         probe.spin_until(lambda: False, 1.0)   # the latched rig and phase reach the node first
         images(plate, 1_000_000_000)
         assert probe.spin_until(lambda: _diagnosed(probe, 'no camera_info yet; 1 frame(s) held'), 30)

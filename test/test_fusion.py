@@ -4,11 +4,10 @@ real rgbd_box frames against a bare Open3D integration."""
 import numpy as np
 import pytest
 
-from volcap_core.camera import CameraModel
-from volcap_fusion.render import camera_up, orbit_views, render
+from volcap_core.camera import CameraModel, depth_to_millimetres
+from volcap_fusion.render import camera_up, look_at, orbit_views, render
 from volcap_fusion.sequence import SequenceWriter, glb_bytes, read_glb, read_manifest, read_ply
 from volcap_fusion.tsdf import CameraView, FusionConfig, Rectifier, TsdfFusion, convergence_point
-from volcap_fusion.render import look_at
 
 RADIUS = 0.3
 COLOUR = (200, 120, 40)
@@ -29,7 +28,7 @@ def sphere_view(name, azimuth, centre=np.zeros(3), distance=1.5, lens=LENS, colo
     t = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / a, 0.0)   # z along the optical axis
     if wall is not None:
         t = np.where(t > 0, t, wall)
-    depth = np.round(t * 1000).astype(np.uint16)
+    depth = depth_to_millimetres(t)
     color = np.zeros((lens.height * 2, lens.width * 2, 3), np.uint8)
     color[:] = colour
     return CameraView(name, depth, lens, color, lens.scaled(lens.width * 2, lens.height * 2), T)
