@@ -53,8 +53,9 @@ def test_filter_nodes_clean_a_replayed_bag_on_every_camera(studio_bag, ros_conte
 
 
 def _one_camera(ros_context, cam, profile):
-    """A probe on the camera's clean depth and the diagnostics, and publishers for its inputs and the rig."""
-    probe = Probe(ros_context, [(f'/{cam}/{topics.DEPTH_CLEAN}', Image, qos.SENSOR),
+    """A probe on the camera's clean depth (reliable: the tests send single frames) and the
+    diagnostics, and publishers for its inputs and the rig."""
+    probe = Probe(ros_context, [(f'/{cam}/{topics.DEPTH_CLEAN}', Image, qos.EVERY_FRAME),
                                 ('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     pubs = {t: probe.node.create_publisher(k, f'/{cam}/{t}', profile)
             for t, k in ((topics.COLOR_IMAGE, Image), (topics.COLOR_INFO, CameraInfo), (topics.DEPTH_IMAGE, Image),

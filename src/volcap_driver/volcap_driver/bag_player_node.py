@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 
+from rclpy.duration import Duration
 from rclpy.node import Node
 
 from volcap_core import qos, topics
@@ -23,6 +24,9 @@ from .bag_io import BagError, BagReader, message_class
 from .playback import HEADER_FIRST_TYPES, Schedule, output_topic, parse_remaps, restamp_cdr
 
 READ_AHEAD = 96   # messages: three 8-camera frame sets of colour, depth and their infos
+# At the end, how long reliable subscribers get to acknowledge the last messages before the node
+# exits: a writer destroyed with unacknowledged samples takes them with it.
+DRAIN_TIMEOUT = Duration(seconds=5.0)
 
 
 class BagPlayer(Node):
@@ -124,6 +128,10 @@ class BagPlayer(Node):
                 break
         if self._stop.is_set() or not self.context.ok():
             return
+        unacknowledged = [t for t, p in pubs.items() if not p.wait_for_all_acked(DRAIN_TIMEOUT)]
+        if unacknowledged:
+            self.diagnostics.report('warn', f'{len(unacknowledged)} topics not acknowledged by every reliable '
+                                            f'subscriber at the end, e.g. {unacknowledged[0]}')
         self.diagnostics.report('ok', f'finished: {self.published} messages published', published=self.published)
         self.get_logger().info(f'finished: {self.published} messages published')
 
