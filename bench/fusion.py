@@ -3,15 +3,18 @@ full size, as `volcap run` asks of the filters, from 640x576 raw depth), against
 the same run:
 
 - ours: ``TsdfFusion.fuse`` (rectification for lens distortion, crop, capture box, the kept
-  volume emptied, integration, marching cubes, box cut), median of ``--repeat`` frame sets;
+  volume emptied, integration, marching cubes, box cut);
 - bare: ``bare_open3d_fusion`` on the same views (the textbook calls: block coordinates,
   integrate, extract; no distortion handling), into a volume allocated beforehand (not timed),
   and the same with a fresh 40 000-block volume per frame set as the Open3D examples do.
 
+Ours and bare are timed in pairs on the same frame set, ``--repeat`` pairs per voxel size; the
+ratio is the median of the pairs' ratios (with its quartiles).
+
 With ``--run``, `volcap run` end to end at 10 mm and 4 mm voxels: fused frame sets per second
 and latency from a frame set entering the graph to its mesh reaching the renderer probe.
 
-    python bench/fusion.py BAG CALIBRATION [--repeat 5] [--run]
+    python bench/fusion.py BAG CALIBRATION [--repeat 15] [--run]
 """
 import argparse
 import json
@@ -67,23 +70,31 @@ def capture_views(bag: str, calibration: Calibration, count: int) -> list[list[C
 
 
 def time_fusion(sets: list[list[CameraView]], voxel: float, repeat: int) -> dict:
+    """Ours and bare on the same frame set, one after the other, ``repeat`` times: the ratio is
+    the median of these pairs, so a machine that speeds up or slows down during the run (2-core
+    timings drift by +-20 %) shifts both sides of each pair alike."""
     cfg = FusionConfig(voxel_size=voxel)
     fusion = TsdfFusion(cfg)
-    cycle = iter(range(10**9))
-    pick = lambda: sets[next(cycle) % len(sets)]   # noqa: E731  (a different frame set each call)
-    ours = median_ms(lambda: fusion.fuse(pick()), repeat)
-    stages = [fusion.fuse(views).timings_ms for views in sets]
-    bare_open3d_fusion(sets[0], cfg, fusion.new_volume())     # warm-up
-    bare_ms = []
+    for views in sets:                                        # warm-up: maps, JIT, the kept volume
+        fusion.fuse(views)
+        bare_open3d_fusion(views, cfg, fusion.new_volume())
+    ours, bare, stages = [], [], []
     for k in range(repeat):
+        views = sets[k % len(sets)]
+        t0 = time.perf_counter()
+        stages.append(fusion.fuse(views).timings_ms)
+        ours.append((time.perf_counter() - t0) * 1e3)
         volume = fusion.new_volume()                          # allocation outside the timing
         t0 = time.perf_counter()
-        bare_open3d_fusion(sets[k % len(sets)], cfg, volume)
-        bare_ms.append((time.perf_counter() - t0) * 1e3)
-    bare_fresh = median_ms(lambda: bare_open3d_fusion(pick(), cfg), repeat)
-    bare = float(np.median(bare_ms))
-    return {'voxel_mm': voxel * 1000, 'ours_ms': ours, 'bare_ms': bare, 'bare_fresh_volume_ms': bare_fresh,
-            'ratio_vs_bare': ours / bare, 'ratio_vs_bare_fresh_volume': ours / bare_fresh,
+        bare_open3d_fusion(views, cfg, volume)
+        bare.append((time.perf_counter() - t0) * 1e3)
+    cycle = iter(range(10**9))
+    bare_fresh = median_ms(lambda: bare_open3d_fusion(sets[next(cycle) % len(sets)], cfg), max(3, repeat // 3))
+    ratios = np.asarray(ours) / np.asarray(bare)
+    return {'voxel_mm': voxel * 1000, 'ours_ms': float(np.median(ours)), 'bare_ms': float(np.median(bare)),
+            'bare_fresh_volume_ms': bare_fresh, 'ratio_vs_bare': float(np.median(ratios)),
+            'ratio_vs_bare_quartiles': [float(q) for q in np.percentile(ratios, [25, 75])],
+            'ratio_vs_bare_fresh_volume': float(np.median(ours)) / bare_fresh,
             'ours_integrate_ms': float(np.median([s['integrate'] for s in stages])),
             'ours_extract_ms': float(np.median([s['extract'] for s in stages]))}
 
@@ -106,7 +117,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('bag')
     p.add_argument('calibration')
-    p.add_argument('--repeat', type=int, default=5)
+    p.add_argument('--repeat', type=int, default=15, help='ours/bare pairs timed per voxel size')
     p.add_argument('--sets', type=int, default=3, help='capture frame sets cycled through')
     p.add_argument('--run', action='store_true', help='also time volcap run end to end')
     args = p.parse_args()
@@ -114,12 +125,14 @@ def main() -> None:
     sets = capture_views(args.bag, Calibration.load(args.calibration), args.sets)
     print(f'{len(sets[0])} cameras, cleaned depth {sets[0][0].depth_mm.shape[1]}x{sets[0][0].depth_mm.shape[0]}, '
           f'colour {sets[0][0].color.shape[1]}x{sets[0][0].color.shape[0]}')
-    print('voxel   ours ms  (integrate, extract)   bare ms  ratio   bare+fresh volume ms  ratio')
+    print('voxel   ours ms  (integrate, extract)   bare ms  ratio (quartiles)   bare+fresh volume ms  ratio')
     for voxel in VOXELS:
         r = time_fusion(sets, voxel, args.repeat)
-        print(f'{r["voxel_mm"]:4.0f} mm {r["ours_ms"]:8.1f}  ({r["ours_integrate_ms"]:6.1f}, {r["ours_extract_ms"]:6.1f})'
-              f'   {r["bare_ms"]:9.1f}  {r["ratio_vs_bare"]:5.2f}   {r["bare_fresh_volume_ms"]:20.1f}  '
-              f'{r["ratio_vs_bare_fresh_volume"]:5.2f}')
+        q1, q3 = r['ratio_vs_bare_quartiles']
+        print(f'{r["voxel_mm"]:4.0f} mm {r["ours_ms"]:8.1f}  '
+              f'({r["ours_integrate_ms"]:6.1f}, {r["ours_extract_ms"]:6.1f})'
+              f'   {r["bare_ms"]:9.1f}  {r["ratio_vs_bare"]:5.2f} ({q1:.2f}-{q3:.2f})   '
+              f'{r["bare_fresh_volume_ms"]:20.1f}  {r["ratio_vs_bare_fresh_volume"]:5.2f}')
     if args.run:
         for voxel, rate in RUN_RATES.items():
             r = time_run(args.bag, args.calibration, voxel, rate)

@@ -1,6 +1,7 @@
 """TSDF fusion without ROS: a sphere seen by distorted cameras, volume reuse, the capture box,
 edge-preserving depth resampling, bad input, the sequence files and the mesh marker; and the
 real rgbd_box frames against a bare Open3D integration."""
+import cv2
 import numpy as np
 import pytest
 
@@ -94,6 +95,54 @@ def test_depth_resampling_never_blends_across_a_step():
     between = (valid > 1001) & (valid < 1999)
     assert not between.any()
     assert np.isin(np.round(valid), (1000, 2000)).all()
+
+
+def surface_coloured_view(name, azimuth, lens=LENS, color_lens=None, aim_above=0.4):
+    """A sphere view (colour on ``color_lens``, the depth's own grid by default) whose colour
+    encodes the world position each pixel sees (128 + 400 * xyz, clipped), so a misregistered
+    colour shows as a wrong value."""
+    color_lens = color_lens or lens
+    v = sphere_view(name, azimuth, lens=lens, aim_above=aim_above)
+    seen = sphere_view(name, azimuth, lens=color_lens, aim_above=aim_above).depth_mm   # depth on the colour grid
+    rays = color_lens.pixel_rays() @ v.T_world_camera[:3, :3].T
+    points = v.T_world_camera[:3, 3] + rays * (seen[..., None] / 1000.0)
+    color = np.clip(128 + 400 * points, 0, 255).astype(np.uint8)
+    color[seen == 0] = 0
+    return CameraView(name, v.depth_mm, lens, color, color_lens, v.T_world_camera)
+
+
+@pytest.mark.parametrize('color_size', [(640, 360), (1280, 720)])
+def test_fused_colour_is_where_it_was_seen(color_size):
+    """Each vertex gets the colour of where it is, with colour on the depth's grid (picked in
+    the depth pass) or on a finer one (remapped). Measured median 1.0, p95 2.4 levels on the
+    depth's grid and 0.8, 2.0 on the finer one; the earlier fixed-point colour remap gave 1.1,
+    7.8 on the depth's grid and 0.8, 2.8 on the finer one (it did not pick the nearest pixel)."""
+    views = [surface_coloured_view(f'cam{k}', k * np.pi / 3, color_lens=LENS.scaled(*color_size)) for k in range(6)]
+    model = TsdfFusion(FusionConfig(voxel_size=0.004)).fuse(views)
+    err = np.abs(model.colors.astype(float) - np.clip(128 + 400 * model.vertices, 0, 255))
+    assert np.median(err) < 1.5 and np.percentile(err, 95) < 4.0
+
+
+def test_depth_and_colour_on_one_grid_are_rectified_in_one_pass():
+    v = surface_coloured_view('cam0', 0.3)
+    shared = Rectifier(v.depth_model, v.color_model)
+    assert shared.shared_grid
+    one_pass = shared(v.depth_mm, v.color)
+    # the depth is what the two-grid path gives; the colour is the lens-corrected colour image
+    # under every pixel with depth, on the same grid with the same intrinsics
+    two_grids = Rectifier(v.depth_model, v.color_model.scaled(1280, 720))(v.depth_mm,
+                                                                      np.zeros((720, 1280, 3), np.uint8))
+    assert np.array_equal(one_pass.depth, two_grids.depth) and np.array_equal(one_pass.depth_K, one_pass.color_K)
+    map_x, map_y = cv2.initUndistortRectifyMap(LENS.K, LENS.D, None, LENS.K, (LENS.width, LENS.height), cv2.CV_32FC1)
+    # the colour pixel nearest each undistorted pixel's source (half-way rounds up)
+    nearest_x = np.clip(np.floor(map_x + 0.5).astype(int), 0, LENS.width - 1)
+    nearest_y = np.clip(np.floor(map_y + 0.5).astype(int), 0, LENS.height - 1)
+    expected = v.color[nearest_y, nearest_x]
+    x0, y0 = -int(one_pass.depth_K[0, 2] - LENS.cx), -int(one_pass.depth_K[1, 2] - LENS.cy)
+    h, w = one_pass.depth.shape
+    has_depth = one_pass.depth > 0
+    assert has_depth.sum() > 10_000
+    assert np.array_equal(one_pass.color[has_depth], expected[y0:y0 + h, x0:x0 + w][has_depth])
 
 
 def test_bad_views_are_refused_with_the_reason():

@@ -167,6 +167,10 @@ class Rectifier:
     interpolated bilinearly where the source pixels around a sample lie on one surface (within
     ``edge_tolerance`` metres plus 1 %); at a silhouette the nearest pixel is kept, so nothing
     is blended across it. Maps are made once per camera.
+
+    When the depth is registered at the colour camera's own resolution (``scale`` 1, as
+    `volcap run` has the filters publish it), depth and colour share one grid: the colour is
+    picked in the same pass, and only under pixels with depth, the only ones Open3D reads.
     """
 
     MARGIN_PX = 4
@@ -178,10 +182,15 @@ class Rectifier:
         self.edge_tolerance = edge_tolerance
         self.map_x, self.map_y = cv2.initUndistortRectifyMap(depth_model.K, depth_model.D, None, self.target.K,
                                                              (self.target.width, self.target.height), cv2.CV_32FC1)
-        distorted = any(d != 0.0 for d in color_model.dist)
-        self.color_maps = cv2.initUndistortRectifyMap(color_model.K, color_model.D, None, color_model.K,
-                                                      (color_model.width, color_model.height),
-                                                      cv2.CV_16SC2) if distorted else None
+        self.shared_grid = scale == 1 and same_grid(depth_model, color_model)
+        self.color_map = None
+        if any(d != 0.0 for d in color_model.dist) and not self.shared_grid:
+            # Integer maps of the nearest pixel. (A CV_16SC2 map straight from
+            # initUndistortRectifyMap is the fixed-point form for bilinear remapping: with
+            # INTER_NEAREST it picks a neighbouring pixel, not the nearest.)
+            map_x, map_y = cv2.initUndistortRectifyMap(color_model.K, color_model.D, None, color_model.K,
+                                                       (color_model.width, color_model.height), cv2.CV_32FC1)
+            self.color_map = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2, nninterpolation=True)[0]
 
     def __call__(self, depth_mm: np.ndarray, color: np.ndarray) -> RectifiedView | None:
         """Depth in uint16 millimetres, colour RGB; None when the depth has no valid pixel."""
@@ -189,20 +198,24 @@ class Rectifier:
         if roi is None:
             return None
         x0, y0, x1, y1 = roi
-        depth_units = _resample_depth(depth_mm, self.map_x, self.map_y, x0, y0, x1, y1,
-                                      np.float32(self.edge_tolerance * 1000.0), np.float32(DEPTH_SCALE / 1000.0))
+        depth_units = np.zeros((y1 - y0, x1 - x0), np.uint16)
         depth_K = _shifted(self.target.K, x0, y0)
+        color_crop = np.zeros((y1 - y0, x1 - x0, 3), np.uint8) if self.shared_grid else _NO_COLOUR
+        _resample(depth_mm, color, self.map_x, self.map_y, x0, y0, depth_units, color_crop,
+                  np.float32(self.edge_tolerance * 1000.0), np.float32(DEPTH_SCALE / 1000.0))
+        if self.shared_grid:
+            return RectifiedView(depth_units, depth_K, color_crop, depth_K)
         # The colour pixels that see the same rays (both grids share the colour optical frame).
         t, c = self.target, self.color_model
         cx0 = int(np.clip(np.floor(c.fx * (x0 - t.cx) / t.fx + c.cx) - self.MARGIN_PX, 0, c.width - 1))
         cx1 = int(np.clip(np.ceil(c.fx * (x1 - 1 - t.cx) / t.fx + c.cx) + self.MARGIN_PX + 1, cx0 + 1, c.width))
         cy0 = int(np.clip(np.floor(c.fy * (y0 - t.cy) / t.fy + c.cy) - self.MARGIN_PX, 0, c.height - 1))
         cy1 = int(np.clip(np.ceil(c.fy * (y1 - 1 - t.cy) / t.fy + c.cy) + self.MARGIN_PX + 1, cy0 + 1, c.height))
-        if self.color_maps is None:
+        if self.color_map is None:
             color_crop = np.ascontiguousarray(color[cy0:cy1, cx0:cx1])
         else:
-            color_crop = cv2.remap(color, self.color_maps[0][cy0:cy1, cx0:cx1], self.color_maps[1][cy0:cy1, cx0:cx1],
-                                   cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            color_crop = cv2.remap(color, self.color_map[cy0:cy1, cx0:cx1], None, cv2.INTER_NEAREST,
+                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return RectifiedView(depth_units, depth_K, color_crop, _shifted(c.K, cx0, cy0))
 
     def _target_roi(self, valid: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -226,34 +239,53 @@ class Rectifier:
         return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
 
-@numba.njit(cache=True)
-def _resample_depth(depth_mm, map_x, map_y, x0, y0, x1, y1, tolerance_mm, units_per_mm):
-    """Depth (uint16 mm) sampled at (map_x, map_y) over the target rows y0:y1, columns x0:x1, in
-    ``DEPTH_SCALE`` units: bilinear where the four source pixels are valid and within
-    ``tolerance_mm`` (+1 %) of each other, the nearest pixel otherwise. (Open3D takes uint16
-    depth with uint8 colour; units finer than a millimetre keep the interpolation.)"""
+def same_grid(a: CameraModel, b: CameraModel) -> bool:
+    """Whether two camera models describe the same pixel grid (size, intrinsics and lens, to
+    within what a camera_info round trip changes)."""
+    if (a.width, a.height) != (b.width, b.height) or len(a.dist) != len(b.dist):
+        return False
+    return bool(np.allclose(a.K, b.K, rtol=0.0, atol=1e-6) and np.allclose(a.D, b.D, rtol=0.0, atol=1e-9))
+
+
+_NO_COLOUR = np.zeros((0, 0, 3), np.uint8)   # colour output of a pass that picks none
+
+
+@numba.njit(cache=True, nogil=True)
+def _resample(depth_mm, color, map_x, map_y, x0, y0, depth_out, color_out, tolerance_mm, units_per_mm):
+    """Depth (uint16 mm) sampled at (map_x, map_y) over the target grid from row y0, column x0,
+    into ``depth_out`` in ``DEPTH_SCALE`` units: bilinear where the four source pixels are valid
+    and within ``tolerance_mm`` (+1 %) of each other, the nearest pixel otherwise. (Open3D takes
+    uint16 depth with uint8 colour; units finer than a millimetre keep the interpolation.) Where
+    there is depth and ``color_out`` is not empty, the nearest colour pixel goes to it."""
     h, w = depth_mm.shape
-    out = np.zeros((y1 - y0, x1 - x0), np.uint16)
-    for r in range(y1 - y0):
-        for c in range(x1 - x0):
-            x, y = map_x[y0 + r, x0 + c], map_y[y0 + r, x0 + c]
-            if not (x > -0.5 and y > -0.5 and x < w - 0.5 and y < h - 0.5):
+    with_color = color_out.shape[0] > 0
+    half = np.float32(0.5)
+    x_end, y_end = np.float32(w - 0.5), np.float32(h - 0.5)
+    for r in range(depth_out.shape[0]):
+        row_x, row_y = map_x[y0 + r], map_y[y0 + r]
+        for c in range(depth_out.shape[1]):
+            x, y = row_x[x0 + c], row_y[x0 + c]
+            if not (x > -half and y > -half and x < x_end and y < y_end):
                 continue
             # x, y > -0.5 here, so int() truncation is floor() (and far cheaper)
-            nearest = depth_mm[int(y + 0.5), int(x + 0.5)]
+            ny, nx = int(y + half), int(x + half)
+            nearest = depth_mm[ny, nx]
             if nearest == 0:        # no depth here: nothing to interpolate (most of a crop)
                 continue
             ix, iy = min(int(x), w - 2), min(int(y), h - 2)
-            fx, fy = min(max(x - ix, 0.0), 1.0), min(max(y - iy, 0.0), 1.0)
+            fx = min(max(x - np.float32(ix), np.float32(0.0)), np.float32(1.0))
+            fy = min(max(y - np.float32(iy), np.float32(0.0)), np.float32(1.0))
             a, b = np.float32(depth_mm[iy, ix]), np.float32(depth_mm[iy, ix + 1])
             cc, d = np.float32(depth_mm[iy + 1, ix]), np.float32(depth_mm[iy + 1, ix + 1])
             lo, hi = min(min(a, b), min(cc, d)), max(max(a, b), max(cc, d))
-            if lo > 0 and hi - lo <= tolerance_mm + 0.01 * hi:
+            if lo > 0 and hi - lo <= tolerance_mm + np.float32(0.01) * hi:
                 z = (a * (1 - fx) + b * fx) * (1 - fy) + (cc * (1 - fx) + d * fx) * fy
             else:
                 z = np.float32(nearest)
-            out[r, c] = min(np.float32(65535.0), z * units_per_mm + np.float32(0.5))
-    return out
+            depth_out[r, c] = min(np.float32(65535.0), z * units_per_mm + half)
+            if with_color:
+                for k in range(3):
+                    color_out[r, c, k] = color[ny, nx, k]
 
 
 def _shifted(K: np.ndarray, x0: int, y0: int) -> np.ndarray:
@@ -331,18 +363,24 @@ class TsdfFusion:
         color = o3d.t.geometry.Image(o3c.Tensor.from_numpy(rectified.color)).to(self.device)
         depth_k, color_k = o3c.Tensor(rectified.depth_K), o3c.Tensor(rectified.color_K)
         extrinsic = o3c.Tensor(invert(np.asarray(view.T_world_camera, np.float64)), o3c.float64)
-        blocks = volume.compute_unique_block_coordinates(depth, depth_k, extrinsic, DEPTH_SCALE, cfg.depth_max, cfg.trunc_voxels)
+        blocks = volume.compute_unique_block_coordinates(depth, depth_k, extrinsic, DEPTH_SCALE, cfg.depth_max,
+                                                         cfg.trunc_voxels)
         blocks = self._inside(blocks, box)
         if blocks.shape[0] == 0:
             return 0
-        volume.integrate(blocks, depth, color, depth_k, color_k, extrinsic, DEPTH_SCALE, cfg.depth_max, cfg.trunc_voxels)
+        volume.integrate(blocks, depth, color, depth_k, color_k, extrinsic, DEPTH_SCALE, cfg.depth_max,
+                         cfg.trunc_voxels)
         return int(blocks.shape[0])
 
     def _inside(self, blocks: o3c.Tensor, box: tuple[np.ndarray, np.ndarray]) -> o3c.Tensor:
         # Blocks whose cube touches the box, in block coordinates (floor of metres / block edge).
         edge = self.cfg.voxel_size * self.cfg.block_resolution
-        lo = o3c.Tensor(np.floor(box[0] / edge).astype(np.int32), device=blocks.device)
-        hi = o3c.Tensor(np.floor(box[1] / edge).astype(np.int32), device=blocks.device)
+        lo, hi = np.floor(box[0] / edge).astype(np.int32), np.floor(box[1] / edge).astype(np.int32)
+        if blocks.device.get_type() == o3c.Device.CPU:
+            # numpy: each Open3D tensor operation costs ~0.1 ms at a few thousand blocks
+            b = blocks.numpy()
+            return o3c.Tensor(b[((b >= lo) & (b <= hi)).all(axis=1)])
+        lo, hi = o3c.Tensor(lo, device=blocks.device), o3c.Tensor(hi, device=blocks.device)
         return blocks[((blocks >= lo) & (blocks <= hi)).all(dim=1)]
 
     def extract(self, volume: o3d.t.geometry.VoxelBlockGrid, box: tuple[np.ndarray, np.ndarray]
