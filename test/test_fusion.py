@@ -123,6 +123,20 @@ def test_fused_colour_is_where_it_was_seen(color_size):
     assert np.median(err) < 1.5 and np.percentile(err, 95) < 4.0
 
 
+def nearest_lens_corrected(color, lens):
+    """The undistorted image, each pixel taken from the source pixel nearest where it came from
+    (half-way rounds up)."""
+    map_x, map_y = cv2.initUndistortRectifyMap(lens.K, lens.D, None, lens.K, (lens.width, lens.height), cv2.CV_32FC1)
+    nearest_x = np.clip(np.floor(map_x + 0.5).astype(int), 0, lens.width - 1)
+    nearest_y = np.clip(np.floor(map_y + 0.5).astype(int), 0, lens.height - 1)
+    return color[nearest_y, nearest_x]
+
+
+def crop_origin(K, lens):
+    """(x0, y0) of a crop whose intrinsics are K, on the undistorted grid of ``lens``."""
+    return int(round(lens.cx - K[0, 2])), int(round(lens.cy - K[1, 2]))
+
+
 def test_depth_and_colour_on_one_grid_are_rectified_in_one_pass():
     v = surface_coloured_view('cam0', 0.3)
     shared = Rectifier(v.depth_model, v.color_model)
@@ -133,16 +147,26 @@ def test_depth_and_colour_on_one_grid_are_rectified_in_one_pass():
     two_grids = Rectifier(v.depth_model, v.color_model.scaled(1280, 720))(v.depth_mm,
                                                                       np.zeros((720, 1280, 3), np.uint8))
     assert np.array_equal(one_pass.depth, two_grids.depth) and np.array_equal(one_pass.depth_K, one_pass.color_K)
-    map_x, map_y = cv2.initUndistortRectifyMap(LENS.K, LENS.D, None, LENS.K, (LENS.width, LENS.height), cv2.CV_32FC1)
-    # the colour pixel nearest each undistorted pixel's source (half-way rounds up)
-    nearest_x = np.clip(np.floor(map_x + 0.5).astype(int), 0, LENS.width - 1)
-    nearest_y = np.clip(np.floor(map_y + 0.5).astype(int), 0, LENS.height - 1)
-    expected = v.color[nearest_y, nearest_x]
-    x0, y0 = -int(one_pass.depth_K[0, 2] - LENS.cx), -int(one_pass.depth_K[1, 2] - LENS.cy)
+    x0, y0 = crop_origin(one_pass.depth_K, LENS)
     h, w = one_pass.depth.shape
     has_depth = one_pass.depth > 0
     assert has_depth.sum() > 10_000
-    assert np.array_equal(one_pass.color[has_depth], expected[y0:y0 + h, x0:x0 + w][has_depth])
+    expected = nearest_lens_corrected(v.color, LENS)[y0:y0 + h, x0:x0 + w]
+    assert np.array_equal(one_pass.color[has_depth], expected[has_depth])
+
+
+def test_colour_on_a_finer_grid_is_remapped_to_the_nearest_pixel():
+    fine = LENS.scaled(1280, 720)
+    v = surface_coloured_view('cam0', 0.3, color_lens=fine)
+    out = Rectifier(v.depth_model, v.color_model)(v.depth_mm, v.color)
+    x0, y0 = crop_origin(out.color_K, fine)
+    h, w = out.color.shape[:2]
+    expected = nearest_lens_corrected(v.color, fine)[y0:y0 + h, x0:x0 + w]
+    seen = expected.any(axis=-1)
+    assert seen.sum() > 10_000
+    # OpenCV rounds half-way to even, so a tie may differ; the fixed-point bilinear map with
+    # nearest sampling, used before, agreed on 2 % of them (measured)
+    assert np.mean(np.all(out.color[seen] == expected[seen], axis=-1)) > 0.999
 
 
 def test_bad_views_are_refused_with_the_reason():

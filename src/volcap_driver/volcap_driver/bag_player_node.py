@@ -26,7 +26,7 @@ from .playback import HEADER_FIRST_TYPES, Schedule, output_topic, parse_remaps, 
 READ_AHEAD = 96   # messages: three 8-camera frame sets of colour, depth and their infos
 # At the end, how long reliable subscribers get to acknowledge the last messages before the node
 # exits: a writer destroyed with unacknowledged samples takes them with it.
-DRAIN_TIMEOUT = Duration(seconds=5.0)
+DRAIN_TIMEOUT_S = 5.0
 
 
 class BagPlayer(Node):
@@ -128,7 +128,9 @@ class BagPlayer(Node):
                 break
         if self._stop.is_set() or not self.context.ok():
             return
-        unacknowledged = [t for t, p in pubs.items() if not p.wait_for_all_acked(DRAIN_TIMEOUT)]
+        deadline = time.monotonic() + DRAIN_TIMEOUT_S      # one budget for all topics, not one each
+        unacknowledged = [t for t, p in pubs.items()
+                          if not p.wait_for_all_acked(Duration(seconds=max(0.0, deadline - time.monotonic())))]
         if unacknowledged:
             self.diagnostics.report('warn', f'{len(unacknowledged)} topics not acknowledged by every reliable '
                                             f'subscriber at the end, e.g. {unacknowledged[0]}')

@@ -250,7 +250,7 @@ def same_grid(a: CameraModel, b: CameraModel) -> bool:
 _NO_COLOUR = np.zeros((0, 0, 3), np.uint8)   # colour output of a pass that picks none
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True)
 def _resample(depth_mm, color, map_x, map_y, x0, y0, depth_out, color_out, tolerance_mm, units_per_mm):
     """Depth (uint16 mm) sampled at (map_x, map_y) over the target grid from row y0, column x0,
     into ``depth_out`` in ``DEPTH_SCALE`` units: bilinear where the four source pixels are valid
