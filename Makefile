@@ -1,4 +1,5 @@
-# volcap: `make demo` runs the pipeline on generated data, `make test` runs the suite.
+# volcap: `make demo` runs the pipeline on generated data, `make test` runs the suite (with the
+# lint), `make test-fast` the pure tests and the lint in under two minutes.
 # Both build .venv themselves (Debian packages via apt-get, pinned Python packages via pip).
 
 PYTHON ?= python3.11
@@ -12,7 +13,7 @@ DEMO_DIR ?= demo_out
 export MALLOC_MMAP_THRESHOLD_ := 67108864
 export MALLOC_TRIM_THRESHOLD_ := 268435456
 
-.PHONY: venv test demo bench colcon clean
+.PHONY: venv lint test test-fast demo bench colcon docs clean
 
 venv: $(STAMP)
 
@@ -25,12 +26,26 @@ $(STAMP): requirements.txt constraints.txt Makefile
 	@# The volcap packages run from src/ in the venv (colcon builds the same tree for a rig).
 	@$(PY) -c 'import pathlib, sysconfig; site = pathlib.Path(sysconfig.get_paths()["purelib"]); \
 	  (site / "volcap_src.pth").write_text("".join(str(p.resolve()) + "\n" for p in sorted(pathlib.Path("src").glob("volcap_*"))))'
+	@# colcon installs bringup's `volcap` console script on a rig; the venv gets the same entry point.
 	@printf '#!/bin/sh\nexec "$$(dirname "$$0")/python" -m volcap_bringup.cli "$$@"\n' > $(VENV)/bin/volcap
 	@chmod +x $(VENV)/bin/volcap
 	@touch $(STAMP)
 
-test: $(STAMP)
+# Style (ruff) and the package layers (import-linter contracts in .importlinter).
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports
+
+test: lint
 	$(PY) -m pytest test
+
+# No ROS nodes, nothing slow: the algorithms, the nodes' decision classes, packaging and docs.
+test-fast: lint
+	$(PY) -m pytest test -m 'not ros and not slow'
+
+# Regenerates the parameter tables in docs/ from the config dataclasses.
+docs: $(STAMP)
+	$(PY) -m volcap_bringup.docs
 
 demo: $(STAMP)
 	$(VENV)/bin/volcap demo --out $(DEMO_DIR)

@@ -11,16 +11,15 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from volcap_calib.board import BoardConfig, reference_srgb8
-from volcap_calib.calibrate import CalibrationConfig, CameraFrame, Calibrator
+from volcap_calib.calibrate import CalibrationConfig, Calibrator, CameraFrame
 from volcap_calib.chart import find_colour_checker
 from volcap_calib.colour import fit_camera_colour
 from volcap_calib.extrinsics import sed_baseline
+from volcap_core.bag_io import BagReader
+from volcap_core.frames import frame_sets, read_rig
 from volcap_core.topics import CALIBRATION_PHASE
-from volcap_driver.bag_io import BagReader
-from volcap_driver.frames import frame_sets, read_rig
 
 
 def main(bag: str) -> None:

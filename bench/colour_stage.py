@@ -17,12 +17,13 @@ import time
 import cv2
 import numpy as np
 
-from volcap_calib.colour import ColourModel
 from volcap_color.apply import ImageCorrector
-from volcap_color.correspondence import find_correspondences
-from volcap_color.evaluate import ColourEvalConfig, capture_views, merge_matches, method_mappings
+from volcap_color.correspondence import find_correspondences, merge_matches
 from volcap_core import transport
 from volcap_core.calibration import Calibration
+from volcap_core.color import ColourModel
+from volcap_eval.color import ColourEvalConfig, method_mappings
+from volcap_eval.replay import capture_views
 
 M = np.array([[1.1, 0.05, -0.02], [0.03, 0.92, 0.01], [-0.04, 0.02, 1.2]])
 MODELS = {

@@ -23,14 +23,13 @@ os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from volcap_core.conversions import (color_to_rgb, depth_to_metres, numpy_to_image,  # noqa: E402
-                                     points_to_pointcloud2)
-from volcap_driver.frames import frame_sets  # noqa: E402
-from volcap_driver.synth.session import GroundTruth, synthesize  # noqa: E402
-from volcap_driver.synth.studio import SynthConfig  # noqa: E402
+from volcap_core.conversions import color_to_rgb, depth_to_metres, numpy_to_image, points_to_pointcloud2  # noqa: E402
+from volcap_core.frames import frame_sets  # noqa: E402
 from volcap_filter.flying import flying_pixels, paper_flying_pixels  # noqa: E402
 from volcap_filter.pipeline import DepthCleaner  # noqa: E402
 from volcap_filter.registration import DepthRegistration  # noqa: E402
+from volcap_studio.session import GroundTruth, synthesize  # noqa: E402
+from volcap_studio.studio import SynthConfig  # noqa: E402
 
 
 def timed(fn, frames, repeat=3) -> float:

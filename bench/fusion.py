@@ -25,14 +25,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from colour_stage import median_ms
+
 from volcap_core import transport
+from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.camera import depth_to_millimetres
+from volcap_core.frames import frame_sets, read_rig
 from volcap_core.topics import CAPTURE, CLEAN_PLATE
-from volcap_driver.bag_io import BagReader
-from volcap_driver.frames import frame_sets, read_rig
 from volcap_filter.pipeline import DepthCleaner, DepthFilterConfig
 from volcap_filter.registration import DepthRegistration
 from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion, bare_open3d_fusion

@@ -19,13 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from colour_stage import median_ms  # bench/ is on the path when run as a script
 
 from volcap_calib.colour import ColourModel
 from volcap_color.apply import ImageCorrector, RegionLut
 from volcap_color.neural import CaptureMapper, ColourField, load_harmonisation, use_bf16
 from volcap_core import transport
-
-from colour_stage import median_ms          # bench/ is on the path when run as a script
 
 
 def bare_step_ms(model, inputs, target, bf16: bool) -> float:

@@ -22,8 +22,8 @@ FPS = 30.0
 
 
 def ensure_bag(out: Path) -> Path:
-    from volcap_driver.synth.session import GroundTruth, synthesize
-    from volcap_driver.synth.studio import SynthConfig
+    from volcap_studio.session import GroundTruth, synthesize
+    from volcap_studio.studio import SynthConfig
     bag = out / 'transport_bag'
     try:
         if len(GroundTruth(bag).frames) == 30:
@@ -42,7 +42,7 @@ def measure(bag: Path, seconds: float, rate: float, raw: bool) -> dict:
     from volcap_bringup.monitor import StreamMonitor
     from volcap_bringup.processes import start_node, stop
     from volcap_core import transport
-    from volcap_driver.synth.session import GroundTruth
+    from volcap_studio.session import GroundTruth
 
     profile = transport.configure()
     rclpy.init()

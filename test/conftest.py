@@ -1,6 +1,7 @@
 """Shared fixtures. Each test process gets its own ROS domain and localhost-only discovery, so
 parallel runs (and other sessions on the machine) never see each other's messages."""
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -22,16 +23,16 @@ def shared_data() -> Path:
 @pytest.fixture(scope='session')
 def studio_bag(tmp_path_factory, shared_data):
     """One small 8-camera studio session (clean plate, 2 board poses, 2 capture frames)."""
-    from volcap_driver.synth.session import synthesize
-    from volcap_driver.synth.studio import SynthConfig
+    from volcap_studio.session import synthesize
+    from volcap_studio.studio import SynthConfig
     out = tmp_path_factory.mktemp('studio') / 'bag'
     synthesize(out, SynthConfig(cameras=8, frames=2, board_poses=2, background_frames=1, seed=7), progress=False)
     return out
 
 
 def _small_session(tmp_path_factory, name, **cfg):
-    from volcap_driver.synth.session import synthesize
-    from volcap_driver.synth.studio import SynthConfig
+    from volcap_studio.session import synthesize
+    from volcap_studio.studio import SynthConfig
     out = tmp_path_factory.mktemp(name) / 'bag'
     synthesize(out, SynthConfig(frames=0, background_frames=0, seed=11, **cfg), progress=False)
     return out
@@ -47,6 +48,19 @@ def calib_bag(tmp_path_factory, shared_data):
 def calib_bag_blind_camera(tmp_path_factory, shared_data):
     """Three cameras; the one board pose faces the front stand, so cam2 (back stand) never sees it."""
     return _small_session(tmp_path_factory, 'calib3', cameras=3, board_poses=1)
+
+
+@pytest.fixture(scope='session')
+def gt_calibration():
+    """A calibration with a synthetic bag's true camera poses (and, optionally, one colour model
+    for every camera)."""
+    from volcap_core.calibration import Calibration, CameraCalibration
+
+    def make(gt, colour: dict | None = None) -> Calibration:
+        return Calibration(gt.rig.names[0], f'{gt.rig.names[0]}_color_optical_frame',
+                           {c: CameraCalibration(gt.T_world_color(c), f'{c}_color_optical_frame', colour=colour)
+                            for c in gt.rig.names})
+    return make
 
 
 @pytest.fixture
@@ -70,3 +84,69 @@ def procs():
     yield started
     for p in started:
         stop(p)
+
+
+# Probes subscribe reliably (EVERY_FRAME): the player sends each frame once, and a best-effort
+# reader on a loaded 2-core CI machine can lose a 2.7 MB frame (seen in CI).
+
+
+class Probe:
+    """Subscribes to topics in the test process and records (receive time, message)."""
+
+    def __init__(self, context, subscriptions):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        self.node = rclpy.create_node('probe', context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.got = {topic: [] for topic, _, _ in subscriptions}
+        for topic, kind, profile in subscriptions:
+            self.subscribe(topic, kind, profile)
+
+    def subscribe(self, topic, kind, profile):
+        self.got.setdefault(topic, [])
+        self.node.create_subscription(kind, topic, lambda m, t=topic: self.got[t].append((time.monotonic(), m)),
+                                      profile)
+
+    def spin_until(self, done, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.05)
+            if done():
+                return True
+        return False
+
+    def assert_all_arrive(self, topics, timeout):
+        assert self.spin_until(lambda: all(self.got[t] for t in topics), timeout=timeout), \
+            f'no output on {[t for t in topics if not self.got[t]]}'
+
+    def close(self):
+        if self.node is not None:
+            self.executor.shutdown()
+            self.node.destroy_node()
+            self.node = None
+
+
+@pytest.fixture
+def probe_factory(ros_context):
+    """Makes Probes on the test's rclpy context; each is closed afterwards."""
+    probes = []
+
+    def make(subscriptions):
+        probes.append(Probe(ros_context, subscriptions))
+        return probes[-1]
+    yield make
+    for p in probes:
+        p.close()
+
+
+@pytest.fixture
+def play(procs):
+    """Starts bag_player on a bag in its own process (stopped with the test's other nodes)."""
+    from volcap_bringup.processes import start_node
+
+    def start(bag, **params):
+        procs.append(start_node('volcap_driver', 'bag_player', {'bag': str(bag), 'wait_for_subscribers': 20.0,
+                                                                **params}))
+        return procs[-1]
+    return start

@@ -19,12 +19,12 @@ setup(
     zip_safe=True,
     maintainer='volcap developers',
     maintainer_email='dev@volcap.invalid',
-    description='Rig configs, launch file, composed runner and the volcap command line.',
+    description='The volcap command line, volcap run (the whole graph on a bag), the graph description and the launch file.',
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
-            
+
         ],
     },
 )

@@ -18,13 +18,12 @@ setup(
     zip_safe=True,
     maintainer='volcap developers',
     maintainer_email='dev@volcap.invalid',
-    description='Cameras for volcap: rosbag2 replay and recording, synthetic 8-camera studio, Azure Kinect import.',
+    description='Cameras for volcap: rosbag2 replay and recording, Azure Kinect import.',
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
             'bag_player = volcap_driver.bag_player_node:main',
-            'synthetic_rig = volcap_driver.synthetic_rig_node:main',
             'recorder = volcap_driver.recorder_node:main'
         ],
     },

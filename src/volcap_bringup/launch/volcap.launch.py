@@ -3,7 +3,7 @@ depth_filter and one color_corrector per camera namespace, and tsdf_fusion; opti
 player as the frame source instead of camera drivers.
 
     ros2 launch volcap_bringup volcap.launch.py calibration:=/rig/calibration.yaml \\
-        cameras:=8 output_dir:=/captures/take1 [bag:=/captures/studio] [voxel_size:=0.004]
+        cameras:=8 output_dir:=/captures/take1 [bag:=/captures/studio] [voxel_size:=0.006]
 
 The node list comes from ``volcap_bringup.graph.rig_graph``, the one `volcap run` starts.
 """
@@ -13,16 +13,17 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from volcap_bringup.graph import rig_graph
+from volcap_fusion import VOXEL_SIZE
 
 ARGUMENTS = {
     'cameras': ('8', 'number of camera namespaces cam0..camN-1'),
     'calibration': ('calibration.yaml', 'rig calibration; the calibration service publishes it on start'),
     'bag': ('', 'a recorded session to replay as the frame source (empty: camera drivers run elsewhere)'),
     'rate': ('1.0', 'bag playback speed'),
-    'voxel_size': ('0.004', 'TSDF voxel size (m)'),
+    'voxel_size': (str(VOXEL_SIZE), 'TSDF voxel size (m)'),
     'output_dir': ('', 'write the PLY/GLB sequence here (empty: publish only)'),
-    'depth_width': ('1280', 'cleaned depth width (the colour width: full resolution; 0: half the colour size)'),
-    'depth_height': ('720', 'cleaned depth height'),
+    'depth_width': ('0', 'cleaned depth width (0: the colour width, the depth_filter default)'),
+    'depth_height': ('0', 'cleaned depth height (0: the colour height)'),
     'device': ('auto', 'fusion device: auto, CPU:0 or CUDA:0'),
 }
 
@@ -33,7 +34,9 @@ def _nodes(context):
     source = None
     if arg['bag']:
         source = ('volcap_driver', 'bag_player', {'bag': arg['bag'], 'rate': float(arg['rate'])})
-    depth_size = {'output_width': int(arg['depth_width']), 'output_height': int(arg['depth_height'])}
+    # 0 leaves the node's own default (the colour size)
+    depth_size = {k: int(arg[a]) for k, a in (('output_width', 'depth_width'), ('output_height', 'depth_height'))
+                  if int(arg[a])}
     fusion = {'voxel_size': float(arg['voxel_size']), 'output_dir': arg['output_dir'], 'device': arg['device']}
     graph = rig_graph(cameras, source, {c: depth_size for c in cameras}, {}, fusion,
                       calibration_service={'output': arg['calibration']})

@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import time
@@ -31,8 +30,8 @@ from . import calib_cli, colour_cli, fusion_cli
 
 
 def cmd_synth(args) -> int:
-    from volcap_driver.synth.session import synthesize
-    from volcap_driver.synth.studio import SynthConfig
+    from volcap_studio.session import synthesize
+    from volcap_studio.studio import SynthConfig
     cfg = SynthConfig(cameras=args.cameras, frames=args.frames, board_poses=args.board_poses,
                       background_frames=args.background_frames, scene=args.scene, seed=args.seed, fps=args.fps,
                       **({'k4a_calibration': args.k4a_calibration} if args.k4a_calibration else {}))
@@ -57,7 +56,7 @@ def cmd_import_k4a(args) -> int:
 
 
 def cmd_info(args) -> int:
-    from volcap_driver.bag_io import BagReader
+    from volcap_core.bag_io import BagReader
     with BagReader(args.bag) as bag:
         counts = bag.topic_counts
         if bag.damage:
@@ -71,7 +70,7 @@ def cmd_info(args) -> int:
 
 
 def cmd_eval_depth(args) -> int:
-    from volcap_filter.evaluate import METHODS, evaluate_depth, format_report, write_report
+    from volcap_eval.depth import METHODS, evaluate_depth, format_report, write_report
     methods = tuple(args.methods.split(',')) if args.methods else METHODS
     report = evaluate_depth(args.bag, methods=methods, max_frames=args.frames,
                             figures=Path(args.figures) if args.figures else None, progress=not args.quiet)
@@ -83,8 +82,8 @@ def cmd_eval_depth(args) -> int:
 
 
 def cmd_eval_registration(args) -> int:
-    from volcap_filter.evaluate import write_report
-    from volcap_filter.registration_check import check_registration
+    from volcap_eval.depth import write_report
+    from volcap_eval.registration import check_registration
     report = check_registration(args.bag, Path(args.out), camera=args.camera)
     print(f"{report['camera']}: depth edges lie {report['median_offset_px']:.2f} px (median) from colour edges "
           f"over {report['edge_pixels']} edge pixels; best global shift {report['best_shift_px']} px "
@@ -94,21 +93,35 @@ def cmd_eval_registration(args) -> int:
     return 0
 
 
-# a third of the default training, so the demo stays a few minutes (the README gives full-length figures)
-DEMO_HARMONISE = ('--points', '100000', '--field-epochs', '40', '--field-lr', '5e-4', '--field-lr-final', '5e-5',
-                  '--mapper-points', '30000')
+# a third of the default training, so the demo stays a few minutes (docs/color.md gives full-length figures)
+DEMO_HARMONISE = {'points': 100_000, 'field_epochs': 40, 'field_lr': 5e-4, 'field_lr_final': 5e-5,
+                  'mapper_points': 30_000}
 
 
 def cmd_demo(args) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from volcap_driver.bag_io import BagReader
-    from volcap_driver.synth.session import GroundTruth, synthesize
-    from volcap_driver.synth.studio import SynthConfig
+    from volcap_calib.run import CalibrateConfig
+    from volcap_calib.run import run as calibrate
+    from volcap_color import neural
+    from volcap_color.correspondence import cameras_in
+    from volcap_color.neural_config import HarmoniseConfig
+    from volcap_core.bag_io import BagReader
+    from volcap_core.calibration import Calibration
+    from volcap_core.files import write_json
+    from volcap_eval.color import ColourEvalConfig
+    from volcap_eval.color import format_report as format_colour
+    from volcap_eval.color import run as evaluate_colour
+    from volcap_eval.fusion import evaluate_fusion
+    from volcap_eval.replay import capture_views
+    from volcap_studio.session import GroundTruth, synthesize
+    from volcap_studio.studio import SynthConfig
 
     from .monitor import StreamMonitor, format_rates
     from .processes import start_node, stop
+    from .run_graph import RunConfig
+    from .run_graph import run as run_graph
 
     out = Path(args.out)
     bag = out / 'studio'
@@ -147,7 +160,7 @@ def cmd_demo(args) -> int:
         monitor.destroy_node()
         rclpy.try_shutdown()
     print(format_rates(summary))
-    (out / 'demo_rates.json').write_text(json.dumps(summary, indent=2))
+    write_json(out / 'demo_rates.json', summary)
     print(f'bag: {bag}  ground truth: {bag / "ground_truth"}  rates: {out / "demo_rates.json"}')
     if code != 0:
         print(f'bag_player exited with {code}', file=sys.stderr)
@@ -156,30 +169,38 @@ def cmd_demo(args) -> int:
         return 1
     calibration = out / 'calibration.yaml'
     print(f'[3/7] calibrating the rig from the board views: volcap calibrate -> {calibration}')
-    if main(['calibrate', str(bag), '--out', str(calibration), '--quiet']) != 0:
-        return 1
+    print('\n'.join(calibrate(CalibrateConfig(bag, calibration)).lines()))
+
     models = out / 'neural'
     print(f'[4/7] neural colour harmonisation (paper 001), a short run of volcap harmonise -> {models}')
-    if main(['harmonise', str(bag), '--calibration', str(calibration), '--out', str(models), '--frames', '4',
-             *DEMO_HARMONISE, '--quiet']) != 0:
-        return 1
+    t0 = time.perf_counter()
+    sets = capture_views(bag, Calibration.load(calibration), 4)
+    report = neural.run(sets, cameras_in(sets, Calibration.load(calibration)), HarmoniseConfig(**DEMO_HARMONISE),
+                        models, sources={'bag': str(bag), 'calibration': str(calibration)},
+                        views_seconds=time.perf_counter() - t0)
+    print('\n'.join(report.lines()))
+
     print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
           f'{out / "figures"}')
-    if main(['eval', 'colour', str(bag), '--calibration', str(calibration), '--frames', '4', '--neural',
-             str(models), '--json', str(out / 'colour.json'), '--figures', str(out / 'figures'), '--quiet']) != 0:
-        return 1
+    colour = evaluate_colour(bag, calibration, ColourEvalConfig(frames=4), neural=models, figures=out / "figures")
+    write_json(out / 'colour.json', colour)
+    print(format_colour(colour))
+
     run = out / 'run'
     if run.exists():
         shutil.rmtree(run)       # a run refuses to overwrite a sequence; the demo makes a new one
     print(f'[6/7] the whole graph on the bag (bag_player, depth_filter and color_corrector x{len(cameras)}, '
           f'tsdf_fusion, each its own process): volcap run -> {run}')
-    if main(['run', str(bag), '--calibration', str(calibration), '--out', str(run), '--voxel', '0.004',
-             '--quiet']) != 0:
+    result = run_graph(RunConfig(bag, calibration, run))
+    print('\n'.join(result.lines()))
+    if not result.ok:
         return 1
+
     print(f'[7/7] the fused sequence against the ground truth: volcap eval fusion -> {out / "fusion.json"}')
-    if main(['eval', 'fusion', str(run), str(bag), '--json', str(out / 'fusion.json'), '--frames', '5',
-             '--quiet']) != 0:
-        return 1
+    fusion = evaluate_fusion(run, bag, max_frames=5)
+    write_json(out / 'fusion.json', fusion)
+    print(f'{fusion["frames"]} frames: accuracy {fusion["accuracy_mm"]:.2f} mm, completeness '
+          f'{100 * fusion["completeness"]:.1f} % of the observable surface')
     print(f'meshes: {run / "frames"} (PLY + GLB per frame set)  renders: {run / "renders"} '
           f'(raw vs cleaned: {run / "renders" / "raw_vs_clean.png"})  metrics: {run / "metrics.json"}')
     return 0
@@ -188,7 +209,7 @@ def cmd_demo(args) -> int:
 def _same_config(bag: Path, cfg) -> bool:
     from dataclasses import asdict
 
-    from volcap_driver.synth.session import GroundTruth
+    from volcap_studio.session import GroundTruth
     try:
         stored = GroundTruth(bag).doc['config']
     except (FileNotFoundError, KeyError):

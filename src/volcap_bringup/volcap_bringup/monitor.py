@@ -12,8 +12,8 @@ from sensor_msgs.msg import Image
 
 from volcap_core import qos, topics
 from volcap_core.conversions import stamp_to_ns
-from volcap_driver.playback import cdr_stamp_ns
 from volcap_core.sync import FrameSetSynchronizer
+from volcap_driver.playback import cdr_stamp_ns
 
 STREAMS = {'color': topics.COLOR_IMAGE, 'depth': topics.DEPTH_IMAGE}
 

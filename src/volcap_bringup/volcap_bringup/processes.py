@@ -8,14 +8,16 @@ import sys
 
 import yaml
 
+# Every volcap node: (package, executable) -> (module, node class). `ros2 run` style processes
+# run the module; a composed process instantiates the class.
 NODES = {
-    ('volcap_driver', 'bag_player'): 'volcap_driver.bag_player_node',
-    ('volcap_driver', 'synthetic_rig'): 'volcap_driver.synthetic_rig_node',
-    ('volcap_driver', 'recorder'): 'volcap_driver.recorder_node',
-    ('volcap_filter', 'depth_filter'): 'volcap_filter.depth_filter_node',
-    ('volcap_calib', 'calibration_service'): 'volcap_calib.calibration_service_node',
-    ('volcap_color', 'color_corrector'): 'volcap_color.color_corrector_node',
-    ('volcap_fusion', 'tsdf_fusion'): 'volcap_fusion.tsdf_fusion_node',
+    ('volcap_driver', 'bag_player'): ('volcap_driver.bag_player_node', 'BagPlayer'),
+    ('volcap_driver', 'recorder'): ('volcap_driver.recorder_node', 'Recorder'),
+    ('volcap_studio', 'synthetic_rig'): ('volcap_studio.synthetic_rig_node', 'SyntheticRig'),
+    ('volcap_calib', 'calibration_service'): ('volcap_calib.calibration_service_node', 'CalibrationService'),
+    ('volcap_filter', 'depth_filter'): ('volcap_filter.depth_filter_node', 'DepthFilter'),
+    ('volcap_color', 'color_corrector'): ('volcap_color.color_corrector_node', 'ColorCorrector'),
+    ('volcap_fusion', 'tsdf_fusion'): ('volcap_fusion.tsdf_fusion_node', 'TsdfFusionNode'),
 }
 
 
@@ -33,7 +35,7 @@ def start_node(package: str, executable: str, params: dict | None = None, env: d
                namespace: str = '', **popen) -> subprocess.Popen:
     """Run a node in its own process (``python -m`` its module, with this interpreter),
     optionally in a namespace (``-r __ns:=/cam0``, as a launch file does)."""
-    module = NODES[(package, executable)]
+    module, _ = NODES[(package, executable)]
     full_env = dict(os.environ)
     full_env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     full_env.update(env or {})
@@ -51,3 +53,14 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
             proc.kill()
             proc.wait()
     return proc.returncode
+
+
+def compose(package: str, executable: str, namespace: str = '', params: dict | None = None, **node_options):
+    """The node instantiated in this process (rclpy initialised), as a composed graph hosts it."""
+    from importlib import import_module
+
+    from rclpy.parameter import Parameter
+    module, cls = NODES[(package, executable)]
+    overrides = [Parameter(k, value=v) for k, v in (params or {}).items()]
+    return getattr(import_module(module), cls)(namespace=namespace or None, parameter_overrides=overrides,
+                                               **node_options)

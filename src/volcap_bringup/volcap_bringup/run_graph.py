@@ -18,25 +18,24 @@ import rclpy
 import yaml
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image, PointCloud2
 from std_msgs.msg import String
 from tqdm import tqdm
 from visualization_msgs.msg import Marker
 
 from volcap_core import qos, topics, transport
+from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.conversions import stamp_to_ns
+from volcap_core.files import write_json
+from volcap_core.frames import read_rig
 from volcap_core.rig import Rig
-from volcap_driver.bag_io import BagReader
-from volcap_driver.frames import read_rig
+from volcap_core.sync import SYNC_TOLERANCE_NS
 from volcap_driver.playback import cdr_stamp_ns
+from volcap_fusion import VOXEL_SIZE
 
 from .graph import rig_graph
-from .processes import start_node, stop
-
-
-SYNC_TOLERANCE_NS = 5_000_000    # tsdf_fusion's default sync_tolerance_ms
+from .processes import compose, start_node, stop
 
 
 class RendererProbe(Node):
@@ -81,12 +80,16 @@ class RendererProbe(Node):
 
 @dataclass
 class RunConfig:
-    voxel_size: float = 0.004
+    bag: str | Path
+    calibration: str | Path
+    out: str | Path                   # frames/, metrics.json, renders/
+    voxel_size: float = VOXEL_SIZE
     rate: float = 0.04                # bag playback speed; the graph must keep up with it to fuse every set
     composed: bool = False
     depth_upsample: int = 1
-    full_depth: bool = True           # cleaned depth at the colour resolution (False: the filter's half-size default)
+    full_depth: bool = True           # cleaned depth at the colour resolution (False: half of it, coarser, cheaper)
     settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
+    progress: bool = True
 
 
 def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str]
@@ -98,20 +101,19 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
     player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,
               'exit_when_done': not cfg.composed}
     filters = {c: {'reliable': True} for c in cameras}
-    if cfg.full_depth:
+    if not cfg.full_depth:
         # Half-size clean depth puts a 6 mm pixel footprint under 4 mm voxels (2.7 mm accuracy
-        # on the demo bag, 1.3 mm at full size), for 5 ms more cleaning per camera.
+        # on the demo bag, 1.3 mm at full size), for 5 ms less cleaning per camera.
         for c in cameras:
             color = rig.camera(c).color
-            filters[c].update(output_width=color.width, output_height=color.height)
+            filters[c].update(output_width=color.width // 2, output_height=color.height // 2)
     return rig_graph(cameras, ('volcap_driver', 'bag_player', player), filters, {'reliable': True}, fusion)
 
 
-def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cfg: RunConfig,
-              progress: bool = True) -> dict:
+def run_graph(cfg: RunConfig) -> dict:
     """Replays ``bag`` through the graph; the sequence lands in ``out/frames``. Returns the
     probe's and the nodes' figures (written to ``out/metrics.json`` by the caller)."""
-    bag, out = Path(bag), Path(out)
+    bag, out, calibration_path, progress = Path(cfg.bag), Path(cfg.out), cfg.calibration, cfg.progress
     calibration = Calibration.load(calibration_path)
     with BagReader(bag) as reader:
         rig = read_rig(reader)
@@ -138,14 +140,14 @@ def run_graph(bag: str | Path, calibration_path: str | Path, out: str | Path, cf
         # The player starts last, once every node subscribes: frames sent earlier would be lost.
         graph, (player_node,) = nodes[1:], nodes[:1]
         if cfg.composed:
-            hosted = [_compose(*n) for n in graph]
+            hosted = [compose(*n) for n in graph]
             for node in hosted:
                 executor.add_node(node)
         else:
             procs = [start_node(pkg, exe, params, namespace=ns) for pkg, exe, ns, params in graph]
         _wait_until_subscribed(executor, probe, cameras, timeout=120.0)
         if cfg.composed:
-            player = _compose(*player_node)
+            player = compose(*player_node)
             executor.add_node(player)
             hosted.insert(0, player)
 
@@ -221,13 +223,63 @@ def _wait_until_subscribed(executor, probe: Node, cameras: list[str], timeout: f
     raise RuntimeError(f'the graph did not come up within {timeout:.0f} s: too few subscribers on {late[:3]}')
 
 
-def _compose(package: str, executable: str, namespace: str, params: dict) -> Node:
-    from importlib import import_module
+@dataclass
+class RunReport:
+    metrics: dict              # as written to ``out/metrics.json``
+    out: Path
 
-    from .processes import NODES
-    module = import_module(NODES[(package, executable)])
-    cls = {'bag_player': 'BagPlayer', 'depth_filter': 'DepthFilter', 'color_corrector': 'ColorCorrector',
-           'tsdf_fusion': 'TsdfFusionNode'}[executable]
-    overrides = [Parameter(k, value=v) for k, v in params.items()]
-    return getattr(module, cls)(namespace=namespace or None, parameter_overrides=overrides)
+    @property
+    def failed_nodes(self) -> dict:
+        return {k: c for k, c in self.metrics['node_exit_codes'].items() if c not in (0, None)}
 
+    @property
+    def ok(self) -> bool:
+        return bool(self.metrics['frames_written']) and not self.failed_nodes
+
+    def lines(self) -> list[str]:
+        m, p = self.metrics, self.metrics['probe']
+        out = [f'{m["frames_written"]} of {m["capture_frame_sets_in_bag"]} capture frame sets fused into '
+               f'{self.out / "frames"} ({m["mode"]}); the renderer probe received {p["meshes_received"]} meshes and '
+               f'{p["clouds_received"]} clouds']
+        if p['latency_ms_median'] is not None:
+            out.append(f'latency from entering the graph to the mesh: median {p["latency_ms_median"]:.0f} ms, '
+                       f'p95 {p["latency_ms_p95"]:.0f} ms; mesh rate {p["mesh_rate_hz"] or 0:.2f} Hz')
+        if 'raw_vs_clean_error' in m:
+            out.append(f'no raw-vs-clean figure: {m["raw_vs_clean_error"]}')
+        out.append(f'metrics: {self.out / "metrics.json"}  renders: {self.out / "renders"}')
+        if self.failed_nodes:
+            out.append(f'nodes that exited with an error: {self.failed_nodes}')
+        return out
+
+
+def run(cfg: RunConfig) -> RunReport:
+    """`volcap run`: the bag through the graph, then renders of the first, middle and last fused
+    frames, the raw-vs-clean figure (paper 000 Figs. 16/18) and ``metrics.json``."""
+    from volcap_eval.fusion import raw_fusion
+    from volcap_eval.render import render_rows
+    from volcap_fusion.sequence import MANIFEST, read_manifest, read_ply
+    from volcap_fusion.tsdf import FusionConfig
+    out = Path(cfg.out)
+    metrics = run_graph(cfg)
+    frames = read_manifest(out / 'frames') if (out / 'frames' / MANIFEST).exists() else []
+    metrics['frames_written'] = len(frames)
+    metrics['frames'] = frames
+    calibration = Calibration.load(cfg.calibration)
+    cameras = metrics['cameras']
+    poses = [calibration.T_world_color(c) for c in cameras]
+    if frames:
+        picks = sorted({0, len(frames) // 2, len(frames) - 1})
+        metrics['renders'] = [str(render_rows([(f'frame {k}', read_ply(out / 'frames' / frames[k]['ply']))], poses,
+                                              out / 'renders' / f'frame_{k:06d}.png')) for k in picks]
+        middle = frames[len(frames) // 2]
+        try:
+            raw = raw_fusion(cfg.bag, middle['stamp_ns'], {c: calibration.T_world_color(c) for c in cameras},
+                             FusionConfig(voxel_size=cfg.voxel_size))
+            clean = read_ply(out / 'frames' / middle['ply'])
+            metrics['raw_vs_clean'] = str(render_rows([('raw depth + raw colour', raw),
+                                                       ('volcap: cleaned + corrected', clean)], poses,
+                                                      out / 'renders' / 'raw_vs_clean.png', frame_on=clean))
+        except ValueError as e:     # the figure is extra: the sequence and metrics are kept
+            metrics['raw_vs_clean_error'] = str(e)
+    write_json(out / 'metrics.json', metrics)
+    return RunReport(metrics, out)

@@ -124,6 +124,7 @@ def write_board(path: str | Path, board: BoardConfig, dpi: int = 300) -> Path:
     """The board artwork at true scale: a PNG carrying its dpi, or a one-page PDF whose page is
     exactly the board's extent (print at 100 %, no scaling)."""
     import io
+
     from volcap_core.files import atomic_write
     path = Path(path)
     px_per_m = dpi / 0.0254

@@ -21,8 +21,16 @@ from .board import BoardConfig, reference_srgb8
 from .chart import quad_mean
 from .colour import METHODS, ColourFit, fit_camera_colour, illuminated_reference, view_illumination
 from .detect import BoardDetector, DetectionError
-from .extrinsics import (CalibrationError, ExtrinsicResult, Observation, SolverConfig, check_against_depth,
-                         solve_rig, target_depth_points, target_pose)
+from .extrinsics import (
+    CalibrationError,
+    ExtrinsicResult,
+    Observation,
+    SolverConfig,
+    check_against_depth,
+    solve_rig,
+    target_depth_points,
+    target_pose,
+)
 
 
 @dataclass

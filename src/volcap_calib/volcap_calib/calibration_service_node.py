@@ -16,7 +16,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
@@ -28,55 +28,70 @@ from std_srvs.srv import Trigger
 
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
-from volcap_core.conversions import (MessageConversionError, camera_info_to_model, color_to_rgb, depth_to_metres,
-                                     make_header, matrix_to_pose, stamp_to_ns)
+from volcap_core.conversions import (
+    MessageConversionError,
+    camera_info_to_model,
+    color_to_rgb,
+    depth_to_metres,
+    make_header,
+    matrix_to_pose,
+    stamp_to_ns,
+)
 from volcap_core.rig import Rig
-from volcap_core.ros import Diagnostics, declare, run_node
-from volcap_core.sync import FrameSetSynchronizer
+from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.settings import setting
+from volcap_core.sync import SYNC_TOLERANCE_MS, FrameSetSynchronizer
+from volcap_core.worker import DropOldestWorker
 
 from .board import BoardConfig
-from .calibrate import CalibrationConfig, CameraFrame, Calibrator
+from .calibrate import CalibrationConfig, Calibrator, CameraFrame
 from .colour import METHODS
 from .extrinsics import CalibrationError, SolverConfig
 
 STREAMS = {'color': topics.COLOR_IMAGE, 'depth': topics.DEPTH_IMAGE}
 
 
+@dataclass
+class CalibrationServiceConfig:
+    output: str = setting('calibration.yaml', 'calibration file written on success')
+    cameras: tuple[str, ...] = setting(tuple(topics.camera_names(8)), 'camera namespaces to listen to (the rig '
+                                       'description says which of them are calibrated)', read_only=True)
+    board_file: str = setting('', 'board YAML (empty: the volcap board)', read_only=True)
+    reference: str = setting('', 'camera whose colour frame is the world (empty: the first)')
+    collect_phase: str = setting(topics.CALIBRATION_PHASE, 'gather frame sets only in this announced phase '
+                                 '(empty: always)')
+    use_depth: bool = setting(True, 'add depth-to-board-plane residuals to the solve')
+    colour_method: str = setting('', 'force a colour model (empty: leave-one-out choice)',
+                                 choices=('', *METHODS))
+    queue_size: int = setting(16, 'frame sets waiting for detection before the oldest is dropped', 1, 1000,
+                              read_only=True)
+    drain_timeout_s: float = setting(60.0, 'how long a calibrate call waits for queued frame sets to be detected',
+                                     0.0, 3600.0)
+    sync_tolerance_ms: float = setting(SYNC_TOLERANCE_MS, 'stamp tolerance of a frame set', 0.0, 100.0,
+                                       read_only=True)
+
+
 class CalibrationService(Node):
-    def __init__(self):
-        super().__init__('calibration_service')
-        self.output = Path(declare(self, 'output', 'calibration.yaml', 'calibration file written on success'))
-        self.cameras = declare(self, 'cameras', topics.camera_names(8), 'camera namespaces to listen to (the rig '
-                               'description says which of them are calibrated)', read_only=True)
-        board_file = declare(self, 'board_file', '', 'board YAML (empty: the volcap board)', read_only=True)
-        self.reference = declare(self, 'reference', '', 'camera whose colour frame is the world (empty: the first)')
-        self.collect_phase = declare(self, 'collect_phase', topics.CALIBRATION_PHASE,
-                                     'gather frame sets only in this announced phase (empty: always)')
-        self.use_depth = declare(self, 'use_depth', True, 'add depth-to-board-plane residuals to the solve')
-        self.colour_method = declare(self, 'colour_method', '',
-                                     f'force a colour model ({"|".join(METHODS)}); empty: leave-one-out choice')
-        self.queue_size = declare(self, 'queue_size', 16, 'frame sets waiting for detection before the oldest '
-                                  'is dropped', 1, 1000, read_only=True)
-        self.drain_timeout = declare(self, 'drain_timeout_s', 60.0, 'how long a calibrate call waits for queued '
-                                     'frame sets to be detected', 0.0, 3600.0)
-        self.tolerance_ms = declare(self, 'sync_tolerance_ms', 5.0, 'stamp tolerance of a frame set', 0.0, 100.0,
-                                    read_only=True)
-        self.board = BoardConfig.from_yaml(board_file) if board_file else BoardConfig.from_yaml()
+    def __init__(self, **node_options):
+        """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
+        super().__init__('calibration_service', **node_options)
+        self.cfg = declare_config(self, CalibrationServiceConfig, self._on_config)
+        self.cameras = list(self.cfg.cameras)
+        self.board = BoardConfig.from_yaml(self.cfg.board_file) if self.cfg.board_file else BoardConfig.from_yaml()
         self.diagnostics = Diagnostics(self, 'calibration service')
         self.rig: Rig | None = None
         self.calibrator: Calibrator | None = None
         # Frame sets are gathered from the start (a bag may play its images before the latched
         # rig description arrives); detection waits for the rig.
-        self.sync = FrameSetSynchronizer(self.cameras, tuple(STREAMS), tolerance_ns=int(self.tolerance_ms * 1e6),
+        self.sync = FrameSetSynchronizer(self.cameras, tuple(STREAMS),
+                                         tolerance_ns=int(self.cfg.sync_tolerance_ms * 1e6),
                                          timeout_ns=500_000_000, max_pending=4)
         self.infos: dict[tuple[str, str], CameraInfo] = {}
         self.phase = None
-        self.queue: deque = deque(maxlen=self.queue_size)
-        self.dropped = self.detected_sets = 0
+        self.detected_sets = 0
         self.lock = threading.Lock()          # guards the calibrator
-        self.wake = threading.Condition()
-        self.busy = False
-        self.running = True
+        self.worker = DropOldestWorker(self._detect, self.cfg.queue_size, 'board-detection',
+                                       on_error=self._on_detection_error, ready=lambda: self.calibrator is not None)
 
         self.pub_calibration = self.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
         self.pub_poses = self.create_publisher(PoseArray, '/' + topics.CAMERA_POSES, qos.LATCHED)
@@ -92,8 +107,7 @@ class CalibrationService(Node):
                                          lambda m, c=cam, s=stream: self.infos.__setitem__((c, s), m), qos.EVERY_FRAME)
         self.create_timer(1.0, self._report)
         self.create_timer(0.2, lambda: self._enqueue(self.sync.poll(time.monotonic_ns())))
-        self.worker = threading.Thread(target=self._work, name='board-detection', daemon=True)
-        self.worker.start()
+        self.output = Path(self.cfg.output)
         if self.output.exists():
             try:
                 self._publish(Calibration.load(self.output))
@@ -101,6 +115,10 @@ class CalibrationService(Node):
             except (ValueError, KeyError, yaml.YAMLError) as e:
                 self.diagnostics.report('warn', f'existing {self.output} is unusable: {e}')
         self.get_logger().info('calibration_service started')
+
+    def _on_config(self, cfg: CalibrationServiceConfig) -> None:
+        self.cfg = cfg
+        self.output = Path(cfg.output)
 
     # inputs -----------------------------------------------------------------------------------
     def _on_rig(self, msg: String) -> None:
@@ -121,16 +139,16 @@ class CalibrationService(Node):
         self.rig = rig
         with self.lock:
             self.calibrator = self._new_calibrator()
-        with self.wake:
-            self.wake.notify_all()
+        self.worker.poke()
         if changed:
             self.diagnostics.report('warn', 'the rig changed: views gathered so far were dropped')
         self.get_logger().info(f'calibrating {len(rig.names)} cameras: {", ".join(rig.names)}')
 
     def _new_calibrator(self) -> Calibrator:
-        cfg = CalibrationConfig(reference=self.reference or None, use_depth=self.use_depth,
-                                colour_method=self.colour_method or None,
-                                solver=SolverConfig(depth_weight=1.0 if self.use_depth else 0.0))
+        c = self.cfg
+        cfg = CalibrationConfig(reference=c.reference or None, use_depth=c.use_depth,
+                                colour_method=c.colour_method or None,
+                                solver=SolverConfig(depth_weight=1.0 if c.use_depth else 0.0))
         return Calibrator(self.rig, self.board, cfg)
 
     def _on_phase(self, msg: String) -> None:
@@ -140,7 +158,8 @@ class CalibrationService(Node):
             pass
 
     def _collecting(self) -> bool:
-        return not self.collect_phase or self.phase is None or self.phase == self.collect_phase
+        phase = self.cfg.collect_phase
+        return not phase or self.phase is None or self.phase == phase
 
     def _on_image(self, msg: Image, camera: str, stream: str) -> None:
         if self._collecting():
@@ -149,29 +168,9 @@ class CalibrationService(Node):
 
     def _enqueue(self, frame_sets) -> None:
         for fs in frame_sets:
-            with self.wake:
-                if len(self.queue) == self.queue.maxlen:
-                    self.dropped += 1
-                self.queue.append(fs)
-                self.wake.notify()
+            self.worker.submit(fs)
 
-    # detection worker -------------------------------------------------------------------------
-    def _work(self) -> None:
-        while self.running:
-            with self.wake:
-                while self.running and (not self.queue or self.calibrator is None):
-                    self.wake.wait(0.5)
-                if not self.running:
-                    return
-                fs = self.queue.popleft()
-                self.busy = True
-            try:
-                self._detect(fs)
-            finally:
-                with self.wake:
-                    self.busy = False
-                    self.wake.notify_all()
-
+    # detection (worker thread) ----------------------------------------------------------------
     def _detect(self, fs) -> None:
         frames, problems = {}, []
         for cam in self.rig.names:
@@ -193,25 +192,22 @@ class CalibrationService(Node):
         if problems:
             self.diagnostics.report('warn', f'frame set {fs.stamp_ns} skipped for ' + '; '.join(problems))
 
+    def _on_detection_error(self, fs, e: Exception) -> None:
+        self.diagnostics.report('error', f'frame set {fs.stamp_ns} not detected: {type(e).__name__}: {e}')
+
     def _drain(self) -> bool:
         self._enqueue(self.sync.flush())
-        deadline = time.monotonic() + self.drain_timeout
-        with self.wake:
-            while self.queue or self.busy:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.wake.wait(min(left, 0.5))
-        return True
+        return self.worker.wait_idle(self.cfg.drain_timeout_s)
 
     # service ----------------------------------------------------------------------------------
     def _on_calibrate(self, request, response):
         if self.rig is None or self.calibrator is None:
             response.success = False
-            response.message = f'no rig description on /{topics.RIG} yet ({len(self.queue)} frame sets waiting)'
+            response.message = f'no rig description on /{topics.RIG} yet ({self.worker.pending} frame sets waiting)'
             return response
         if not self._drain():
-            self.diagnostics.report('warn', f'{len(self.queue)} frame sets still queued after {self.drain_timeout} s; '
+            self.diagnostics.report('warn', f'{self.worker.pending} frame sets still queued after '
+                                            f'{self.cfg.drain_timeout_s} s; '
                                             'solving without them')
         t0 = time.monotonic()
         with self.lock:
@@ -254,14 +250,11 @@ class CalibrationService(Node):
         with self.lock:
             observations, views = len(self.calibrator.observations), self.calibrator.views
         self.diagnostics.report('ok', f'{observations} board observations in {views} frame sets',
-                                observations=observations, frame_sets=views, queued=len(self.queue),
-                                dropped=self.dropped)
+                                observations=observations, frame_sets=views, queued=self.worker.pending,
+                                dropped=self.worker.dropped)
 
     def destroy_node(self):
-        self.running = False
-        with self.wake:
-            self.wake.notify_all()
-        self.worker.join(timeout=2.0)
+        self.worker.stop(timeout=2.0)
         return super().destroy_node()
 
 

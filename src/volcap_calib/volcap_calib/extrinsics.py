@@ -21,8 +21,7 @@ from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from volcap_core.camera import CameraModel
-from volcap_core.poses import (from_rotvec_t, invert, make_transform, rotation_angle_deg, to_rotvec_t,
-                               transform_points)
+from volcap_core.poses import from_rotvec_t, invert, make_transform, rotation_angle_deg, to_rotvec_t, transform_points
 
 from .detect import Detection
 

@@ -1,6 +1,6 @@
 """Colour models compiled for full-rate 8-bit images.
 
-A model from ``volcap_calib.colour`` is evaluated per pixel in float64 by ``ColourModel.apply``:
+A model from ``volcap_core.color`` is evaluated per pixel in float64 by ``ColourModel.apply``:
 exact, but about a second per 1280x720 frame. Live correction instead compiles it once:
 
 - ``paper_diagonal`` works on the encoded values: one ``cv2.transform`` on the uint8 image;
@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from volcap_calib.colour import ColourModel, linear_to_srgb, srgb_to_linear
+from volcap_core.color import ColourModel, linear_to_srgb, srgb_to_linear
 from volcap_core.files import atomic_write
 
 ENCODE_STEPS = 16384     # linear [0, 1] -> uint8 table; finer than one sRGB level everywhere

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,43 +26,52 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
-from volcap_calib.colour import ColourModel
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
+from volcap_core.color import ColourModel
 from volcap_core.conversions import MessageConversionError, color_to_rgb, numpy_to_image, stamp_to_ns
-from volcap_core.ros import Diagnostics, declare, run_node
+from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.settings import setting
 
 from .apply import ImageCorrector, RegionLut
+
+
+@dataclass
+class ColorCorrectorConfig:
+    camera: str = setting('', 'camera name in the calibration (empty: the last part of the namespace)',
+                          read_only=True)
+    passthrough: bool = setting(True, 'publish uncorrected images while there is no colour model (false: drop '
+                                'them)')
+    neural_models: str = setting('', 'volcap harmonise output folder: apply its neural mapping for this camera '
+                                 'instead of the calibration\'s colour model ("" = off)', read_only=True)
+    reliable: bool = setting(False, 'subscribe reliably (offline replay: lose no frame)', read_only=True)
 
 
 class ColorCorrector(Node):
     def __init__(self, **node_options):
         """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
         super().__init__('color_corrector', **node_options)
-        ns_camera = self.get_namespace().strip('/').split('/')[-1]
-        self.camera = declare(self, 'camera', ns_camera or 'cam0', 'camera name in the calibration', read_only=True)
-        self.passthrough = declare(self, 'passthrough', True,
-                                   'publish uncorrected images while there is no colour model (false: drop them)')
-        neural_models = declare(self, 'neural_models', '',
-                                'volcap harmonise output folder: apply its neural mapping for this camera instead of '
-                                'the calibration\'s colour model ("" = off)', read_only=True)
+        self.cfg = declare_config(self, ColorCorrectorConfig, self._on_config)
+        self.camera = self.cfg.camera or self.get_namespace().strip('/').split('/')[-1] or 'cam0'
         self.diagnostics = Diagnostics(self, f'colour corrector {self.camera}')
         self.corrector: ImageCorrector | None = None
         self._buffer: np.ndarray | None = None
         self.model_text = 'none'
         self.neural = False
         self.neural_problem = ''
-        if neural_models:
-            self._load_neural(Path(neural_models) / f'{self.camera}.lut.npz')
+        if self.cfg.neural_models:
+            self._load_neural(Path(self.cfg.neural_models) / f'{self.camera}.lut.npz')
         self.corrected = self.passed = self.skipped = 0
         self.ms: list[float] = []
         self.pub = self.create_publisher(Image, topics.COLOR_CORRECTED, qos.DRIVER)
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
-        inputs = qos.EVERY_FRAME if declare(self, 'reliable', False, 'subscribe reliably (offline replay: lose no '
-                                            'frame)', read_only=True) else qos.SENSOR
+        inputs = qos.EVERY_FRAME if self.cfg.reliable else qos.SENSOR
         self.create_subscription(Image, topics.COLOR_IMAGE, self._on_image, inputs)
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'color_corrector started for {self.camera}')
+
+    def _on_config(self, cfg: ColorCorrectorConfig) -> None:
+        self.cfg = cfg
 
     def _load_neural(self, path: Path) -> None:
         try:
@@ -104,7 +114,7 @@ class ColorCorrector(Node):
             self.diagnostics.report('error', f'{self.camera}: image skipped: {e}')
             return
         if self.corrector is None:
-            if not self.passthrough:
+            if not self.cfg.passthrough:
                 return
             out = rgb
             self.passed += 1
@@ -118,7 +128,7 @@ class ColorCorrector(Node):
     def _report(self) -> None:
         if self.corrector is None:
             self.diagnostics.report('warn', f'{self.camera}: no colour model yet; images are '
-                                            f'{"passed through" if self.passthrough else "dropped"}'
+                                            f'{"passed through" if self.cfg.passthrough else "dropped"}'
                                             + (f'; {self.neural_problem}' if self.neural_problem else ''),
                                     passed=self.passed, skipped=self.skipped)
             return

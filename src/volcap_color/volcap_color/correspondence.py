@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from volcap_core.calibration import Calibration
 from volcap_core.camera import CameraModel
 from volcap_core.sampling import sample_bilinear
 
@@ -184,4 +185,31 @@ def find_correspondences(views: list[View], cfg: CorrespondenceConfig = Correspo
             m = match_pair(a, b, cfg)
             if m.fraction >= cfg.min_fraction:
                 out[(a.name, b.name)] = m
+    return out
+
+
+def split_frame_sets(count: int) -> tuple[list[int], list[int]]:
+    """(fitted, scored) frame set indices: the 1st, 3rd, ... and the 2nd, 4th, ...; one frame set
+    is both."""
+    fit = list(range(0, count, 2))
+    return fit, list(range(1, count, 2)) or fit
+
+
+def cameras_in(sets: list[list[View]], calibration: Calibration) -> list[str]:
+    """The calibration's cameras seen in any of the frame sets (one missing from a set still counts)."""
+    seen = {v.name for views in sets for v in views}
+    return [c for c in calibration.cameras if c in seen]
+
+
+def merge_matches(per_set: list[dict[tuple[str, str], Matches]], min_fraction: float) -> dict[tuple[str, str], Matches]:
+    """One Matches per pair over several frame sets; the fraction is over all of them."""
+    pairs = sorted({p for d in per_set for p in d})
+    out = {}
+    for p in pairs:
+        parts = [d[p] for d in per_set if p in d]
+        fraction = sum(m.fraction for m in parts) / len(per_set)
+        if fraction < min_fraction:
+            continue
+        out[p] = Matches(p[0], p[1], *(np.concatenate([getattr(m, k) for m in parts]) for k in
+                                       ('pixels_a', 'pixels_b', 'colours_a', 'colours_b')), fraction)
     return out

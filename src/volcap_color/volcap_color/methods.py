@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.sparse.csgraph import shortest_path
 
-from volcap_calib.colour import ColourModel, srgb_to_linear
+from volcap_core.color import ColourModel, srgb_to_linear
 
 from .apply import pixel_centres
 from .correspondence import Matches

@@ -35,10 +35,11 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from volcap_core.files import atomic_write
+from volcap_core.files import atomic_write, write_json
 
 from .apply import ImageCorrector, RegionLut, pixel_centres
-from .correspondence import View
+from .correspondence import View, split_frame_sets
+from .figures import training_figure
 from .neural_config import HarmoniseConfig
 
 CHECKPOINT = 'checkpoint.pt'
@@ -494,3 +495,52 @@ def export_live(harm: Harmonisation, out_dir: str | Path, check_views: list[View
         if mine:
             errors[cam] = export_error(harm, cam, lut, mine)
     return {'export_error': errors}
+
+
+@dataclass
+class HarmoniseReport:
+    manifest: dict          # also written to ``out_dir/manifest.json``
+    cameras: list[str]
+    out_dir: Path
+
+    def lines(self) -> list[str]:
+        m = self.manifest
+        out = [f"E: {m['field_samples']} samples, {len(m['field']['losses'])} epochs, final RMS "
+               f"{255 * m['field']['losses'][-1] ** 0.5:.2f} levels, {m['field']['seconds']:.0f} s "
+               f"({m['device']}{', bf16' if m['bf16'] else ''})"]
+        for c in self.cameras:
+            d, e = m['mapper_error'].get(c), m['export_error'].get(c)
+            if d and e:
+                out.append(f'{c}: D vs E\'s reference on held-out pixels RMS {d["rms_levels"]:.2f} levels; live LUT '
+                           f'vs D mean {e["mean_levels"]:.2f}, p99 {e["p99_levels"]:.0f}, max {e["max_levels"]:.0f} '
+                           'levels')
+        out.append(f'wrote {self.out_dir}/ (manifest.json, field.pt, <camera>.mapper.pt, <camera>.lut.npz, '
+                   f'training.png) in {m["seconds"]["total"]:.0f} s')
+        return out
+
+
+def run(sets: list[list[View]], cameras: list[str], cfg: HarmoniseConfig, out_dir: str | Path,
+        train_sets: str = 'even', resume: bool = False, progress: bool = True, sources: dict | None = None,
+        views_seconds: float = 0.0) -> HarmoniseReport:
+    """`volcap harmonise` on views of capture frame sets: train (on the 1st, 3rd, ... set with
+    ``train_sets='even'``, the sets the colour evaluation fits on, so it scores D on sets it never
+    saw; or on all), export the live form checked on the other sets, write the manifest (with
+    ``sources``, e.g. the bag and calibration) and the training figure."""
+    if train_sets not in ('even', 'all'):
+        raise ValueError(f"train_sets must be 'even' or 'all', got {train_sets!r}")
+    cfg.validate()
+    trained, checked = split_frame_sets(len(sets)) if train_sets == 'even' else (list(range(len(sets))),) * 2
+    t1 = time.perf_counter()
+    harm = harmonise([sets[i] for i in trained], cameras, cfg, out_dir, resume=resume, progress=progress)
+    t2 = time.perf_counter()
+    live = export_live(harm, out_dir, [v for i in checked for v in sets[i]], progress=progress)
+    t3 = time.perf_counter()
+    manifest = {**harm.report, **live, **(sources or {}),
+                'frame_sets': {'read': len(sets), 'trained': trained, 'checked': checked,
+                               'checked_held_out': checked != trained},
+                'seconds': {'views': views_seconds, 'training': t2 - t1, 'export': t3 - t2,
+                            'total': views_seconds + t3 - t1}}
+    out = Path(out_dir)
+    write_json(out / MANIFEST, manifest)
+    training_figure(out / 'training.png', manifest)
+    return HarmoniseReport(manifest, cameras, out)

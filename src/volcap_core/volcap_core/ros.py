@@ -1,5 +1,5 @@
-"""Small rclpy helpers shared by the nodes: start-up and shutdown, declared parameters with
-descriptions and ranges, and diagnostics on ``volcap/diagnostics``."""
+"""Small rclpy helpers shared by the nodes: start-up and shutdown, parameters declared from a
+config dataclass (``volcap_core.settings``), and diagnostics on ``volcap/diagnostics``."""
 from __future__ import annotations
 
 import time
@@ -8,12 +8,12 @@ from typing import Callable
 import rclpy
 import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
-from . import qos, topics, transport
+from . import qos, settings, topics, transport
 from .conversions import diagnostic_array, diagnostic_status
 
 RCLError = _rclpy.RCLError
@@ -46,15 +46,44 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
 def declare(node: Node, name: str, default, description: str, low=None, high=None, read_only=False):
     """Declare a parameter with its description and, for numbers, its allowed range."""
     descriptor = ParameterDescriptor(description=description, read_only=read_only)
-    if low is not None and high is not None:
-        if isinstance(default, bool):
-            raise ValueError('ranges do not apply to booleans')
-        if isinstance(default, int):
+    if low is not None and high is not None and not isinstance(default, (bool, str)):
+        first = default[0] if isinstance(default, list) and default else default
+        if isinstance(first, int) and not isinstance(first, bool):
             descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high), step=1)]
-        else:
+        elif isinstance(first, float):
             descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high),
                                                                   step=0.0)]
     return node.declare_parameter(name, default, descriptor).value
+
+
+def declare_config(node: Node, cls, on_change: Callable | None = None):
+    """Declare every setting of the config class ``cls`` as a parameter (description, range,
+    read-only) and return the config built from the parameters' values. With ``on_change``,
+    settings that are not read-only can be changed while running: the new config is validated
+    as a whole and handed to ``on_change(config)``; an invalid one is refused with the reason."""
+    specs = settings.settings(cls)
+    for s in specs:
+        text = s.description + (f' ({s.range_text})' if s.choices else '')
+        declare(node, s.name, s.parameter_default, text, s.low, s.high, s.read_only)
+    names = [s.name for s in specs]
+
+    def current() -> dict:
+        return {n: node.get_parameter(n).value for n in names}
+
+    cfg = settings.build(cls, current())
+    if on_change is not None:
+        def changed(params) -> SetParametersResult:
+            mine = {p.name: p.value for p in params if p.name in names}
+            if not mine:
+                return SetParametersResult(successful=True)
+            try:
+                new = settings.build(cls, {**current(), **mine})
+            except (ValueError, TypeError) as e:
+                return SetParametersResult(successful=False, reason=str(e))
+            on_change(new)
+            return SetParametersResult(successful=True)
+        node.add_on_set_parameters_callback(changed)
+    return cfg
 
 
 class Diagnostics:

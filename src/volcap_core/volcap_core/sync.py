@@ -13,6 +13,10 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Hashable, Sequence
 
+# Stamps of one frame set agree within this (hardware-synced cameras agree within ~1 ms).
+SYNC_TOLERANCE_MS = 5.0
+SYNC_TOLERANCE_NS = int(SYNC_TOLERANCE_MS * 1e6)
+
 
 @dataclass
 class FrameSet:
@@ -46,7 +50,7 @@ class _Pending:
 
 class FrameSetSynchronizer:
     def __init__(self, cameras: Sequence[str], streams: Sequence[Hashable] = (None,),
-                 tolerance_ns: int = 5_000_000, timeout_ns: int = 200_000_000, max_pending: int = 4):
+                 tolerance_ns: int = SYNC_TOLERANCE_NS, timeout_ns: int = 200_000_000, max_pending: int = 4):
         if not cameras:
             raise ValueError('synchroniser needs at least one camera')
         if tolerance_ns < 0 or timeout_ns <= 0 or max_pending < 1:

@@ -18,10 +18,10 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 
 from volcap_core import qos, topics
-from volcap_core.ros import Diagnostics, declare, run_node
+from volcap_core.bag_io import BagError, BagReader, message_class
+from volcap_core.ros import Diagnostics, declare_config, run_node
 
-from .bag_io import BagError, BagReader, message_class
-from .playback import HEADER_FIRST_TYPES, Schedule, output_topic, parse_remaps, restamp_cdr
+from .playback import HEADER_FIRST_TYPES, BagPlayerConfig, Schedule, output_topic, parse_remaps, restamp_cdr
 
 READ_AHEAD = 96   # messages: three 8-camera frame sets of colour, depth and their infos
 # At the end, how long reliable subscribers get to acknowledge the last messages before the node
@@ -33,21 +33,12 @@ class BagPlayer(Node):
     def __init__(self, **node_options):
         """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
         super().__init__('bag_player', **node_options)
-        self.bag = declare(self, 'bag', '', 'rosbag2 bag directory (MCAP or sqlite3) to replay', read_only=True)
-        declare(self, 'rate', 1.0, 'playback speed relative to real time (changeable while playing)', 0.01, 100.0)
-        self.fast = declare(self, 'as_fast_as_possible', False, 'publish without waiting between messages')
-        self.loop = declare(self, 'loop', False, 'start again from the beginning when the bag ends')
-        self.start_offset = declare(self, 'start_offset', 0.0, 'seconds into the bag to start from', 0.0, 1e7)
-        self.topic_filter = declare(self, 'topics', [''], 'bag topics to play (empty: all)')
-        self.remaps = parse_remaps([r for r in declare(self, 'remap', [''], 'FROM:=TO topic remappings') if r])
-        self.namespace_prefix = declare(self, 'namespace', '', 'prefix for every played topic (not remapped ones)')
-        self.extra_latched = declare(self, 'latched_topics', [''], 'extra bag topics to publish transient-local')
-        self.restamp = declare(self, 'restamp', False,
-                               'rewrite header stamps to the wall-clock time each message is scheduled at')
-        self.exit_when_done = declare(self, 'exit_when_done', True, 'shut the node down when playback ends')
-        self.wait_for_subscribers = declare(self, 'wait_for_subscribers', 0.0,
-                                            'wait up to this many seconds for every played topic to have a '
-                                            'subscriber before starting (0: start at once)', 0.0, 3600.0)
+        self.cfg = declare_config(self, BagPlayerConfig, self._on_config)
+        c = self.cfg
+        self.bag, self.fast, self.loop, self.start_offset = c.bag, c.as_fast_as_possible, c.loop, c.start_offset
+        self.topic_filter, self.remaps = c.topics, parse_remaps([r for r in c.remap if r])
+        self.namespace_prefix, self.extra_latched, self.restamp = c.namespace, c.latched_topics, c.restamp
+        self.exit_when_done, self.wait_for_subscribers = c.exit_when_done, c.wait_for_subscribers
         self.diagnostics = Diagnostics(self, 'playback')
         self.exit_code = 0
         self.published = 0
@@ -55,6 +46,9 @@ class BagPlayer(Node):
         self._thread = threading.Thread(target=self._run, name='bag_playback', daemon=True)
         self.get_logger().info(f'bag_player started: {self.bag or "(no bag given)"}')
         self._thread.start()
+
+    def _on_config(self, cfg: BagPlayerConfig) -> None:
+        self.cfg = cfg     # the rate is read afresh while playing; the rest applies at start
 
     @property
     def playing(self) -> bool:
@@ -102,12 +96,12 @@ class BagPlayer(Node):
         start = reader.start_ns + int(self.start_offset * 1e9)
         self.get_logger().info(f'playing {len(pubs)} of {len(reader.topics)} topics of a {reader.message_count}-'
                                f'message bag, {(reader.end_ns - reader.start_ns) / 1e9:.2f} s of bag time')
-        rate = self.get_parameter('rate').value
+        rate = self.cfg.rate
         last_report = time.monotonic()
         while not self._stop.is_set():
             schedule = Schedule(start, time.time_ns(), rate, self.fast)
             for msg in self._read_ahead(reader, list(pubs), start):
-                new_rate = self.get_parameter('rate').value
+                new_rate = self.cfg.rate
                 if new_rate != rate:
                     rate, schedule = new_rate, schedule.rebase(msg.stamp_ns, time.time_ns(), new_rate)
                 target = schedule.wall_time(msg.stamp_ns)

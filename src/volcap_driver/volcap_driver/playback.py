@@ -4,6 +4,8 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+from volcap_core.settings import setting
+
 HEADER_FIRST_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'sensor_msgs/msg/PointCloud2',
                       'sensor_msgs/msg/CompressedImage', 'visualization_msgs/msg/Marker',
                       'geometry_msgs/msg/PoseArray', 'diagnostic_msgs/msg/DiagnosticArray')
@@ -29,6 +31,29 @@ def output_topic(topic: str, remaps: dict[str, str], namespace: str = '') -> str
         return remaps[bare]
     ns = namespace.strip('/')
     return f'{ns}/{bare}' if ns else bare
+
+
+@dataclass
+class BagPlayerConfig:
+    bag: str = setting('', 'rosbag2 bag directory (MCAP or sqlite3) to replay', read_only=True)
+    rate: float = setting(1.0, 'playback speed relative to real time (changeable while playing)', 0.01, 100.0)
+    as_fast_as_possible: bool = setting(False, 'publish without waiting between messages', read_only=True)
+    loop: bool = setting(False, 'start again from the beginning when the bag ends', read_only=True)
+    start_offset: float = setting(0.0, 'seconds into the bag to start from', 0.0, 1e7, read_only=True)
+    topics: tuple[str, ...] = setting(('',), 'bag topics to play (empty: all)', read_only=True)
+    remap: tuple[str, ...] = setting(('',), 'FROM:=TO topic remappings, e.g. cam0/color/image_raw:=/k4a/rgb/image_raw',
+                                     read_only=True)
+    namespace: str = setting('', 'prefix for every played topic (not remapped ones)', read_only=True)
+    latched_topics: tuple[str, ...] = setting(('',), 'extra bag topics to publish transient-local (the bag\'s own '
+                                              'latched topics and the volcap rig-level ones always are)',
+                                              read_only=True)
+    restamp: bool = setting(False, 'rewrite header stamps to the wall-clock time each message is scheduled at',
+                            read_only=True)
+    exit_when_done: bool = setting(True, 'shut the node down when playback ends (exit code 1 if the bag was '
+                                         'unreadable)', read_only=True)
+    wait_for_subscribers: float = setting(0.0, 'wait up to this many seconds for every played topic to have a '
+                                               'subscriber before starting (0: start at once)', 0.0, 3600.0,
+                                          read_only=True)
 
 
 @dataclass

@@ -14,9 +14,8 @@ import sys
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from volcap_core.bag_io import COMPRESSIONS, BagError, BagWriter, message_class
 from volcap_core.ros import Diagnostics, declare, run_node
-
-from .bag_io import COMPRESSIONS, BagError, BagWriter, message_class
 
 IGNORED = ('/rosout', '/parameter_events', '/volcap/diagnostics')
 
@@ -28,8 +27,9 @@ def _absolute(topic: str, namespace: str) -> str:
 
 
 class Recorder(Node):
-    def __init__(self):
-        super().__init__('recorder')
+    def __init__(self, **node_options):
+        """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
+        super().__init__('recorder', **node_options)
         out = declare(self, 'out', '', 'bag directory to create (must not exist)', read_only=True)
         compression = declare(self, 'compression', 'none', f'MCAP chunk compression: {"|".join(COMPRESSIONS)}',
                               read_only=True)

@@ -1,13 +1,9 @@
-"""PNG figures of depth cleaning: paper 000 Fig. 13 style (RGB, mask, masked RGB) and raw vs
-cleaned depth with the removed flying pixels marked, like its Figs. 14-15."""
+"""Panels of depth cleaning: paper 000 Fig. 13 style (RGB, mask, masked RGB) and raw vs cleaned
+depth with the removed flying pixels marked, like its Figs. 14-15."""
 from __future__ import annotations
-
-from pathlib import Path
 
 import cv2
 import numpy as np
-
-from volcap_core.files import atomic_write
 
 from .pipeline import CleanResult
 
@@ -34,26 +30,3 @@ def depth_panels(raw_m: np.ndarray, result: CleanResult) -> np.ndarray:
     h = raw.shape[0]
     clean = cv2.resize(clean, (int(round(clean.shape[1] * h / clean.shape[0])), h), interpolation=cv2.INTER_NEAREST)
     return np.concatenate([raw, clean], axis=1)
-
-
-def write_png(path: Path, rgb: np.ndarray) -> None:
-    ok, png = cv2.imencode('.png', np.ascontiguousarray(rgb[:, :, ::-1]))
-    if not ok:
-        raise OSError(f'could not encode {path}')
-    atomic_write(path, lambda f: f.write(png.tobytes()))
-
-
-def write_depth_figures(out_dir: Path, frames: dict) -> list[Path]:
-    """``frames[method][camera] = (BagFrame, CleanResult)``: one mask and one depth figure per
-    method and camera."""
-    written = []
-    for method, cams in frames.items():
-        for name, (frame, result) in cams.items():
-            if result.mask is not None:
-                p = out_dir / f'{method}_{name}_mask.png'
-                write_png(p, mask_panels(frame.color, result.mask))
-                written.append(p)
-            p = out_dir / f'{method}_{name}_depth.png'
-            write_png(p, depth_panels(frame.depth, result))
-            written.append(p)
-    return written

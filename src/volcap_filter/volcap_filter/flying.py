@@ -29,6 +29,9 @@ import cv2
 import numba
 import numpy as np
 
+from volcap_core.settings import setting, validate
+
+
 @numba.njit(cache=True)
 def _paper_eq5(depth_mm, horizontal, threshold):
     h, w = depth_mm.shape
@@ -68,24 +71,18 @@ def paper_flying_pixels(depth_m: np.ndarray, directions: str = 'all', threshold_
 
 @dataclass
 class FlyingPixelConfig:
-    noise_base: float = 0.0008        # sigma(z) = base + quad z^2, metres (Azure Kinect class)
-    noise_quad: float = 0.0010
-    noise_sigmas: float = 3.0         # second-difference tolerance in sigmas
-    edge_sigmas: float = 1.0          # ... one-sided, for pixels at a depth step
-    curvature: float = 0.004          # extra second-difference allowance per metre of depth
-    max_incidence_deg: float = 75.0   # steeper surfaces than this count as steps
-    min_axes: int = 3                 # directions (of 4) in which the pixel must continue a surface
-    min_component_px: int = 30        # smaller depth-connected components are removed (0 = off)
+    noise_base: float = setting(0.0008, 'ToF depth noise sigma at 0 m (m); sigma(z) = base + quad z^2', 0.0, 0.05)
+    noise_quad: float = setting(0.0010, 'ToF depth noise growth (m per m^2)', 0.0, 0.05)
+    noise_sigmas: float = setting(3.0, 'second-difference tolerance on smooth surfaces, in sigmas', 0.5, 20.0)
+    edge_sigmas: float = setting(1.0, 'one-sided tolerance for pixels at a depth step, in sigmas', 0.1, 20.0)
+    curvature: float = setting(0.004, 'second-difference allowance per metre of depth for curved surfaces', 0.0, 0.1)
+    max_incidence_deg: float = setting(75.0, 'steeper surfaces than this incidence angle count as depth steps',
+                                       30.0, 89.0)
+    min_axes: int = setting(3, 'axes (of 4) along which a pixel must continue a surface', 1, 4)
+    min_component_px: int = setting(30, 'connected pieces of depth smaller than this are removed (0 = off)', 0, 10000)
 
     def validate(self) -> None:
-        if not (self.noise_base >= 0 and self.noise_quad >= 0 and self.noise_sigmas > 0 and self.curvature >= 0):
-            raise ValueError('noise model and tolerances must be non-negative')
-        if not 0.0 < self.max_incidence_deg < 90.0:
-            raise ValueError(f'max_incidence_deg must be in (0, 90), got {self.max_incidence_deg}')
-        if not 1 <= self.min_axes <= 4:
-            raise ValueError(f'min_axes must be 1..4, got {self.min_axes}')
-        if self.min_component_px < 0:
-            raise ValueError('min_component_px must be >= 0')
+        validate(self)
 
 
 @numba.njit(cache=True, inline='always')

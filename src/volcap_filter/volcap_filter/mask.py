@@ -17,27 +17,31 @@ import numba
 import numpy as np
 
 from volcap_core.files import atomic_write
+from volcap_core.settings import setting, validate
 
 
 @dataclass
 class MaskConfig:
-    noise_floor: float = 3.0          # colour sigma floor (8-bit levels) with few clean-plate frames
-    chroma_sigmas: float = 6.0        # chromaticity distortion (in sigmas) beyond which it is foreground
-    min_difference: float = 12.0      # ... and at least this far in 8-bit levels
-    shadow_min: float = 0.55          # brightness ratio down to which a darker pixel may be shadow
-    highlight_max: float = 1.25       # brightness ratio above which a pixel is foreground
-    depth_margin: float = 0.05        # metres in front of the background depth that count as foreground
-    min_area_frac: float = 0.0005     # foreground blobs smaller than this fraction of the image go
-    min_range: float = 0.1            # range gate, metres (paper: 0.1-2.5 m)
-    max_range: float = 2.5
+    noise_floor: float = setting(3.0, 'colour sigma floor of the clean plate (8-bit levels)', 0.5, 50.0)
+    chroma_sigmas: float = setting(6.0, 'chromaticity distortion beyond which a pixel is foreground (sigmas)',
+                                   0.5, 100.0)
+    min_difference: float = setting(12.0, 'smallest colour difference to the clean plate that can be foreground',
+                                    0.0, 255.0)
+    shadow_min: float = setting(0.55, 'brightness ratio down to which a darker pixel may be shadow', 0.05, 1.0)
+    highlight_max: float = setting(1.25, 'brightness ratio above which a pixel is foreground', 1.0, 5.0)
+    depth_margin: float = setting(0.05, 'metres in front of the clean-plate depth that count as foreground',
+                                  0.0, 2.0)
+    min_area_frac: float = setting(0.0005, 'foreground blobs smaller than this fraction of the image are dropped',
+                                   0.0, 0.5)
+    min_range: float = setting(0.1, 'range gate near limit (m)', 0.0, 20.0)
+    max_range: float = setting(2.5, 'range gate far limit (m)', 0.05, 20.0)
 
     def validate(self) -> None:
-        if not 0.0 <= self.min_range < self.max_range:
+        validate(self)
+        if not self.min_range < self.max_range:
             raise ValueError(f'range gate needs 0 <= min_range < max_range, got {self.min_range}, {self.max_range}')
         if not 0.0 < self.shadow_min <= 1.0 <= self.highlight_max:
             raise ValueError('need 0 < shadow_min <= 1 <= highlight_max')
-        if self.noise_floor <= 0 or self.chroma_sigmas <= 0 or self.min_difference < 0 or self.depth_margin < 0:
-            raise ValueError('mask thresholds must be positive')
 
 
 @numba.njit(cache=True)

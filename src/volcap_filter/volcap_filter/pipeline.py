@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from volcap_core.settings import setting, validate
+
 from .flying import FlyingPixelConfig, flying_pixels, paper_flying_pixels
 from .mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
 from .registration import DepthRegistration, Registered
@@ -19,28 +21,25 @@ MASK_MODES = ('clean_plate', 'chroma', 'none')
 
 @dataclass
 class DepthFilterConfig:
-    flying_method: str = 'volcap'
+    flying_method: str = setting('volcap', 'flying-pixel filter', choices=FLYING_METHODS)
     flying: FlyingPixelConfig = field(default_factory=FlyingPixelConfig)
-    mask_mode: str = 'clean_plate'
+    mask_mode: str = setting('clean_plate', 'foreground mask', choices=MASK_MODES)
     mask: MaskConfig = field(default_factory=MaskConfig)
-    range_gate: bool = True
-    chroma_key: tuple[int, int, int] = (0, 177, 64)
-    chroma_threshold: float = 40.0
-    boundary_px: int = 2              # width of the mask's boundary band (output pixels)
-    boundary_tolerance: float = 0.03  # band depth may lie this far behind the nearby inside, metres
-    temporal_alpha: float = 0.0       # 0 = off; else EMA weight of the new frame on stable pixels
-    sor_neighbors: int = 0            # 0 = off; Open3D statistical outlier removal on the cloud
-    sor_std_ratio: float = 2.5
+    range_gate: bool = setting(True, 'drop depth outside [min_range, max_range]')
+    chroma_key: tuple[int, int, int] = setting((0, 177, 64), 'chroma-key colour (R, G, B) for mask_mode chroma',
+                                               0, 255)
+    chroma_threshold: float = setting(40.0, 'chroma-key distance (Cr, Cb) beyond which a pixel is foreground',
+                                      1.0, 255.0)
+    boundary_px: int = setting(2, 'mask boundary band (output px) where depth behind the inside is dropped', 0, 20)
+    boundary_tolerance: float = setting(0.03, 'how far behind the nearby inside band depth may lie (m)', 0.0, 1.0)
+    temporal_alpha: float = setting(0.0, 'temporal EMA weight of a new frame on stable pixels (0 = off)', 0.0, 1.0)
+    sor_neighbors: int = setting(0, 'statistical outlier removal neighbours on the cloud (0 = off)', 0, 100)
+    sor_std_ratio: float = setting(2.5, 'statistical outlier removal threshold (std ratios)', 0.1, 10.0)
 
     def validate(self) -> None:
-        if self.flying_method not in FLYING_METHODS:
-            raise ValueError(f'flying_method must be one of {FLYING_METHODS}, got {self.flying_method!r}')
-        if self.mask_mode not in MASK_MODES:
-            raise ValueError(f'mask_mode must be one of {MASK_MODES}, got {self.mask_mode!r}')
-        if self.boundary_px < 0 or self.boundary_tolerance < 0 or self.sor_neighbors < 0:
-            raise ValueError('boundary_px, boundary_tolerance and sor_neighbors must be >= 0')
-        if not 0.0 <= self.temporal_alpha <= 1.0:
-            raise ValueError(f'temporal_alpha must be in [0, 1], got {self.temporal_alpha}')
+        validate(self)
+        if len(self.chroma_key) != 3:
+            raise ValueError(f'chroma_key must be three values 0-255, got {self.chroma_key}')
         self.flying.validate()
         self.mask.validate()
 
@@ -197,7 +196,7 @@ def sanitise_depth(depth_m: np.ndarray) -> np.ndarray:
 
 
 def statistical_outlier_removal(xyz: np.ndarray, rgb: np.ndarray, neighbors: int, std_ratio: float):
-    import open3d as o3d   # only when the option is on: importing Open3D costs ~1 s at start-up
+    import open3d as o3d  # only when the option is on: importing Open3D costs ~1 s at start-up
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz.astype(np.float64)))
     _, idx = pcd.remove_statistical_outlier(nb_neighbors=neighbors, std_ratio=std_ratio)
     idx = np.asarray(idx, np.int64)

@@ -21,49 +21,43 @@ import open3d.core as o3c
 
 from volcap_core.camera import CameraModel
 from volcap_core.poses import invert
+from volcap_core.settings import setting, validate
 
+from . import VOXEL_SIZE
 
 DEPTH_SCALE = 10_000.0   # depth units per metre handed to Open3D (0.1 mm; 6.5 m at most)
 
 
 @dataclass
 class FusionConfig:
-    voxel_size: float = 0.004            # metres
-    trunc_voxels: float = 4.0            # SDF truncation, in voxels
-    weight_threshold: float = 1.0        # voxels observed fewer times than this are not meshed
-    block_resolution: int = 8            # voxels per block edge
-    block_count: int = 40_000            # initial hash map capacity (it grows when needed)
-    depth_max: float = 3.0               # metres; farther depth is not integrated
-    # Capture box, axis-aligned in the world frame: edge lengths (metres) and centre (None: the
-    # point the cameras' optical axes pass closest to, which is where a rig is aimed).
-    box_size: tuple[float, float, float] = (2.6, 2.6, 2.6)
-    box_center: tuple[float, float, float] | None = None
-    depth_upsample: int = 1              # depth resampled this many times finer before integration
-    edge_tolerance: float = 0.02         # metres (+1 %): neighbours closer than this are one surface
-    device: str = 'CPU:0'
+    voxel_size: float = setting(VOXEL_SIZE, 'TSDF voxel edge (m)', 0.0005, 0.1, read_only=True)
+    trunc_voxels: float = setting(4.0, 'SDF truncation in voxels', 1.0, 32.0, read_only=True)
+    weight_threshold: float = setting(1.0, 'observations a voxel needs to be meshed', 0.0, 100.0, read_only=True)
+    block_resolution: int = setting(8, 'voxels per block edge', choices=(4, 8, 16), read_only=True)
+    block_count: int = setting(40_000, 'initial voxel block capacity (it grows when needed)', 1, 10_000_000,
+                               read_only=True)
+    depth_max: float = setting(3.0, 'depth beyond this is not fused (m)', 0.1, 6.5, read_only=True)
+    # Capture box, axis-aligned in the world frame: edge lengths and centre (None: the point the
+    # cameras' optical axes pass closest to, which is where a rig is aimed).
+    box_size: tuple[float, float, float] = setting((2.6, 2.6, 2.6), 'capture box edge lengths (m)', 0.01, 100.0,
+                                                   read_only=True)
+    box_center: tuple[float, float, float] | None = setting(
+        None, 'capture box centre x, y, z in the world frame (m); [0.0]: where the cameras point', none_as=[0.0],
+        read_only=True)
+    depth_upsample: int = setting(1, 'depth resampled this many times finer before integration', 1, 4,
+                                  read_only=True)
+    edge_tolerance: float = setting(0.02, 'depth step (m, +1 %) that separates surfaces', 0.0, 1.0, read_only=True)
+    device: str = setting('auto', 'CPU:0, CUDA:0 or auto (CUDA when Open3D has it)', read_only=True)
 
     def validate(self) -> None:
-        if not 0.0005 <= self.voxel_size <= 0.1:
-            raise ValueError(f'voxel_size must be within 0.5-100 mm, got {self.voxel_size} m')
-        if not 1.0 <= self.trunc_voxels <= 32.0:
-            raise ValueError(f'trunc_voxels must be within 1-32, got {self.trunc_voxels}')
-        if self.weight_threshold < 0:
-            raise ValueError(f'weight_threshold must be >= 0, got {self.weight_threshold}')
-        if self.block_resolution not in (4, 8, 16):
-            raise ValueError(f'block_resolution must be 4, 8 or 16, got {self.block_resolution}')
-        if self.depth_upsample not in (1, 2, 3, 4):
-            raise ValueError(f'depth_upsample must be 1-4, got {self.depth_upsample}')
-        if self.edge_tolerance < 0:
-            raise ValueError('edge_tolerance must be >= 0')
-        if self.block_count < 1 or not 0 < self.depth_max <= 6.5:
-            raise ValueError('block_count must be >= 1 and depth_max within 0-6.5 m')
+        validate(self)
         size = np.asarray(self.box_size, float)
         if size.shape != (3,) or not np.all(size > 0):
             raise ValueError(f'box_size must be 3 positive edge lengths, got {self.box_size}')
         if self.box_center is not None and (np.shape(self.box_center) != (3,)
                                             or not np.all(np.isfinite(self.box_center))):
             raise ValueError(f'box_center must be 3 finite values or None, got {self.box_center}')
-        device = o3c.Device(self.device)
+        device = o3c.Device(pick_device(self.device))
         if device.get_type() == o3c.Device.CUDA and not o3d.core.cuda.is_available():
             raise ValueError(f'device {self.device}: this Open3D has no CUDA device')
 
@@ -304,7 +298,7 @@ class TsdfFusion:
     def __init__(self, cfg: FusionConfig | None = None):
         self.cfg = cfg or FusionConfig()
         self.cfg.validate()
-        self.device = o3c.Device(self.cfg.device)
+        self.device = o3c.Device(pick_device(self.cfg.device))
         self._rectifiers: dict[tuple[CameraModel, CameraModel], Rectifier] = {}
         self._volume: o3d.t.geometry.VoxelBlockGrid | None = None
 

@@ -19,11 +19,8 @@ While a session phase is announced on ``/volcap/phase``, only the ``phases`` lis
 from __future__ import annotations
 
 import sys
-import threading
 import time
-from collections import deque
 
-import numpy as np
 import yaml
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -33,64 +30,35 @@ from visualization_msgs.msg import Marker
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
 from volcap_core.camera import depth_to_millimetres
-from volcap_core.conversions import (MessageConversionError, camera_info_to_model, color_to_rgb, depth_to_metres,
-                                     image_to_numpy, mesh_to_marker_cdr, points_to_pointcloud2, stamp_to_ns)
-from volcap_core.ros import Diagnostics, declare, run_node
+from volcap_core.conversions import (
+    camera_info_to_model,
+    color_to_rgb,
+    depth_to_metres,
+    image_to_numpy,
+    mesh_to_marker_cdr,
+    points_to_pointcloud2,
+    stamp_to_ns,
+)
+from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSet, FrameSetSynchronizer
+from volcap_core.worker import DropOldestWorker
 
+from .frame_sets import ALL, FusionNodeConfig, frame_set_views, fused_phase
 from .sequence import SequenceWriter
 from .tsdf import CameraView, FusionConfig, TsdfFusion, pick_device
-
-ALL = 'all'
 
 
 class TsdfFusionNode(Node):
     def __init__(self, **node_options):
         """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
         super().__init__('tsdf_fusion', **node_options)
-        self.wanted = [c for c in declare(self, 'cameras', [ALL], 'cameras to fuse ("all": every calibrated camera)',
-                                          read_only=True) if c]
-        center = declare(self, 'box_center', [0.0], 'capture box centre x, y, z in the world frame (m); one value: '
-                                                    'where the cameras point', read_only=True)
-        cfg = FusionConfig(
-            voxel_size=declare(self, 'voxel_size', 0.004, 'TSDF voxel edge (m)', 0.0005, 0.1, read_only=True),
-            trunc_voxels=declare(self, 'trunc_voxels', 4.0, 'SDF truncation in voxels', 1.0, 32.0, read_only=True),
-            weight_threshold=declare(self, 'weight_threshold', 1.0, 'observations a voxel needs to be meshed',
-                                     0.0, 100.0, read_only=True),
-            block_resolution=declare(self, 'block_resolution', 8, 'voxels per block edge (4, 8 or 16)', 4, 16,
-                                     read_only=True),
-            block_count=declare(self, 'block_count', 40000, 'initial voxel block capacity', 1, 10_000_000,
-                                read_only=True),
-            depth_max=declare(self, 'depth_max', 3.0, 'depth beyond this is not fused (m)', 0.1, 6.5, read_only=True),
-            depth_upsample=declare(self, 'depth_upsample', 1, 'depth resampled this many times finer', 1, 4,
-                                   read_only=True),
-            edge_tolerance=declare(self, 'edge_tolerance', 0.02, 'depth step (m) that separates surfaces', 0.0, 1.0,
-                                   read_only=True),
-            box_size=tuple(declare(self, 'box_size', [2.6, 2.6, 2.6], 'capture box edge lengths (m)',
-                                   read_only=True)),
-            box_center=tuple(center) if len(center) == 3 else None,
-            device=pick_device(declare(self, 'device', 'auto', 'CPU:0, CUDA:0 or auto (CUDA when Open3D has it)',
-                                       read_only=True)))
+        self.node_cfg = declare_config(self, FusionNodeConfig, self._on_node_config)
+        cfg = declare_config(self, FusionConfig)
         self.fusion = TsdfFusion(cfg)   # validates: bad values stop the node with the reason
-        tolerance_ms = declare(self, 'sync_tolerance_ms', 5.0, 'stamp tolerance within a frame set', 0.0, 100.0,
-                               read_only=True)
-        self.timeout_ns = int(declare(self, 'frame_timeout_ms', 300.0, 'after this, fuse the cameras that arrived',
-                                      1.0, 10_000.0, read_only=True) * 1e6)
-        self.tolerance_ns = int(tolerance_ms * 1e6)
-        self.min_cameras = declare(self, 'min_cameras', 1, 'fewer cameras than this: the frame set is skipped', 1, 64)
-        self.queue = deque(maxlen=declare(self, 'queue_size', 2, 'frame sets waiting for fusion (oldest dropped)',
-                                          1, 100, read_only=True))
-        self.phases = [p for p in declare(self, 'phases', [topics.CAPTURE], 'session phases to fuse while one is '
-                                          'announced on /volcap/phase') if p]
-        self.reliable = declare(self, 'reliable', False, 'subscribe reliably (offline replay: lose no frame)',
-                                read_only=True)
-        self.marker_max_triangles = declare(self, 'marker_max_triangles', 150_000,
-                                            'the mesh marker is decimated above this', 1000, 10_000_000)
-        output_dir = declare(self, 'output_dir', '', 'write the sequence (PLY + GLB per time step) here',
-                             read_only=True)
-        formats = [f for f in declare(self, 'output_formats', ['ply', 'glb'], 'sequence file formats',
-                                      read_only=True) if f]
-        self.writer = SequenceWriter(output_dir, tuple(formats)) if output_dir else None
+        self.wanted = [c for c in self.node_cfg.cameras if c]
+        output_dir = self.node_cfg.output_dir
+        formats = tuple(f for f in self.node_cfg.output_formats if f)
+        self.writer = SequenceWriter(output_dir, formats) if output_dir else None
 
         self.diagnostics = Diagnostics(self, 'tsdf fusion')
         self.calibration: Calibration | None = None
@@ -99,10 +67,10 @@ class TsdfFusionNode(Node):
         self.infos: dict[tuple[str, str], CameraInfo] = {}
         self.camera_subscriptions = []
         self.phase = None
-        self.stats = {'fused': 0, 'dropped': 0, 'incomplete': 0, 'skipped': 0, 'errors': 0}
+        self.stats = {'fused': 0, 'incomplete': 0, 'skipped': 0}
         self.last = {}
-        self.lock = threading.Condition()
-        self.running = True
+        self.worker = DropOldestWorker(self._fuse, self.node_cfg.queue_size, 'tsdf_fusion_worker',
+                                       on_error=self._on_fusion_error)
 
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
@@ -110,10 +78,11 @@ class TsdfFusionNode(Node):
         self.pub_mesh = self.create_publisher(Marker, '/' + topics.MESH, qos.DRIVER)
         self.create_timer(0.05, self._poll)
         self.create_timer(1.0, self._report)
-        self.worker = threading.Thread(target=self._work, name='tsdf_fusion_worker', daemon=True)
-        self.worker.start()
-        self.get_logger().info(f'tsdf_fusion started: {cfg.voxel_size * 1000:.1f} mm voxels on {cfg.device}'
-                               + (f', writing {output_dir}' if output_dir else ''))
+        self.get_logger().info(f'tsdf_fusion started: {cfg.voxel_size * 1000:.1f} mm voxels on '
+                               f'{pick_device(cfg.device)}' + (f', writing {output_dir}' if output_dir else ''))
+
+    def _on_node_config(self, cfg: FusionNodeConfig) -> None:
+        self.node_cfg = cfg
 
     # inputs -------------------------------------------------------------------------------
     def _on_calibration(self, msg: String) -> None:
@@ -134,7 +103,7 @@ class TsdfFusionNode(Node):
     def _subscribe(self, cameras: list[str]) -> None:
         for sub in self.camera_subscriptions:
             self.destroy_subscription(sub)
-        profile = qos.EVERY_FRAME if self.reliable else qos.SENSOR
+        profile = qos.EVERY_FRAME if self.node_cfg.reliable else qos.SENSOR
         subs = []
         # camera_info first: the executor serves ready subscriptions in creation order
         for cam in cameras:
@@ -148,8 +117,9 @@ class TsdfFusionNode(Node):
                     Image, f'/{cam}/{topic}', lambda m, c=cam, s=stream: self._on_image(c, s, m), profile))
         self.camera_subscriptions = subs
         self.cameras = cameras
-        self.sync = FrameSetSynchronizer(cameras, ('depth', 'color'), tolerance_ns=self.tolerance_ns,
-                                         timeout_ns=self.timeout_ns, max_pending=4)
+        self.sync = FrameSetSynchronizer(cameras, ('depth', 'color'),
+                                         tolerance_ns=int(self.node_cfg.sync_tolerance_ms * 1e6),
+                                         timeout_ns=int(self.node_cfg.frame_timeout_ms * 1e6), max_pending=4)
         self.get_logger().info(f'fusing {len(cameras)} cameras: {", ".join(cameras)}')
 
     def _on_phase(self, msg: String) -> None:
@@ -170,65 +140,44 @@ class TsdfFusionNode(Node):
 
     def _emit(self, sets: list[FrameSet]) -> None:
         for fs in sets:
-            if self.phase is not None and self.phases and self.phase not in self.phases:
+            if not fused_phase(self.phase, self.node_cfg.phases):
                 continue
             if not fs.complete:
                 self.stats['incomplete'] += 1
-            with self.lock:
-                if len(self.queue) == self.queue.maxlen:
-                    self.stats['dropped'] += 1
-                self.queue.append((fs, self.calibration))
-                self.lock.notify()
+            self.worker.submit((fs, self.calibration, list(self.cameras)))
 
     # fusion (worker thread) ---------------------------------------------------------------
-    def _work(self) -> None:
-        while True:
-            with self.lock:
-                while self.running and not self.queue:
-                    self.lock.wait()
-                if not self.running:
-                    return
-                fs, calibration = self.queue.popleft()
-            try:
-                self._fuse(fs, calibration)
-            except Exception as e:   # the worker must outlive any one bad frame set
-                self.stats['errors'] += 1
-                self.diagnostics.report('error', f'frame set {fs.stamp_ns} not fused: {type(e).__name__}: {e}')
-
-    def _fuse(self, fs: FrameSet, calibration: Calibration) -> None:
+    def _fuse(self, item) -> None:
+        fs, calibration, cameras = item
         t0 = time.perf_counter()
-        views, problems = [], {}
-        for cam in self.cameras:
-            depth_msg, color_msg = fs.get(cam, 'depth'), fs.get(cam, 'color')
-            if depth_msg is None or color_msg is None:
-                continue
-            try:
-                views.append(self._view(cam, depth_msg, color_msg, calibration))
-            except (MessageConversionError, ValueError, KeyError) as e:
-                problems[cam] = str(e)
-        missing = sorted({c for c, _ in fs.missing} | set(problems))
-        if problems:
+        parts = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras
+                 if fs.get(c, 'depth') is not None and fs.get(c, 'color') is not None}
+        plan = frame_set_views(fs.stamp_ns, cameras, parts, lambda c, p: self._view(c, *p, calibration),
+                               self.node_cfg.min_cameras)
+        if plan.problems:
             self.diagnostics.report('warn', 'cameras left out of frame set: '
-                                    + '; '.join(f'{c}: {e}' for c, e in problems.items()))
-        if len(views) < self.min_cameras:
+                                    + '; '.join(f'{c}: {e}' for c, e in plan.problems.items()))
+        if plan.skipped:
             self.stats['skipped'] += 1
-            self.diagnostics.report('warn', f'frame set {fs.stamp_ns} skipped: {len(views)} of {len(self.cameras)} '
-                                            f'cameras (missing {", ".join(missing)})')
+            self.diagnostics.report('warn', plan.skipped)
             return
-        if missing:
-            self.diagnostics.report('warn', f'frame set {fs.stamp_ns} fused without {", ".join(missing)}')
-        model = self.fusion.fuse(views)
+        if plan.missing:
+            self.diagnostics.report('warn', f'frame set {fs.stamp_ns} fused without {", ".join(plan.missing)}')
+        model = self.fusion.fuse(plan.views)
         frame = calibration.world_frame
         self.pub_points.publish(points_to_pointcloud2(model.vertices, model.colors, fs.stamp_ns, frame))
-        marker = model.decimated(self.marker_max_triangles, 2 * self.fusion.cfg.voxel_size)
+        marker = model.decimated(self.node_cfg.marker_max_triangles, 2 * self.fusion.cfg.voxel_size)
         self.pub_mesh.publish(mesh_to_marker_cdr(marker.vertices, marker.colors, marker.triangles, fs.stamp_ns,
                                                  frame))
         if self.writer is not None:
-            self.writer.write(model, fs.stamp_ns, missing)
+            self.writer.write(model, fs.stamp_ns, plan.missing)
         self.stats['fused'] += 1
         self.last = {'fusion_ms': round(sum(model.timings_ms.values()), 1),
-                     'total_ms': round((time.perf_counter() - t0) * 1000, 1), 'cameras': len(views),
+                     'total_ms': round((time.perf_counter() - t0) * 1000, 1), 'cameras': len(plan.views),
                      'vertices': len(model.vertices), 'triangles': len(model.triangles)}
+
+    def _on_fusion_error(self, item, e: Exception) -> None:
+        self.diagnostics.report('error', f'frame set {item[0].stamp_ns} not fused: {type(e).__name__}: {e}')
 
     def _view(self, cam: str, depth_msg: Image, color_msg: Image, calibration: Calibration) -> CameraView:
         infos = self.infos.get((cam, 'depth')), self.infos.get((cam, 'color'))
@@ -245,16 +194,12 @@ class TsdfFusionNode(Node):
         if self.calibration is None:
             self.diagnostics.report('warn', f'waiting for the calibration on /{topics.CALIBRATION}')
             return
-        with self.lock:
-            waiting = len(self.queue)
-        self.diagnostics.report('ok', f'{self.stats["fused"]} frame sets fused', waiting=waiting, **self.stats,
-                                **self.last)
+        w = self.worker
+        self.diagnostics.report('ok', f'{self.stats["fused"]} frame sets fused', waiting=w.pending,
+                                dropped=w.dropped, errors=w.errors, **self.stats, **self.last)
 
     def destroy_node(self):
-        with self.lock:
-            self.running = False
-            self.lock.notify_all()
-        self.worker.join(timeout=10.0)
+        self.worker.stop()
         return super().destroy_node()
 
 

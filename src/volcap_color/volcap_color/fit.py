@@ -1,0 +1,72 @@
+"""Chart-free colour models for a rig (`volcap colour-fit`): correspondences between the
+cameras of a few capture frame sets, one linear model per camera making them agree, written
+into the calibration as each camera's colour model (the chart fit kept as ``previous``)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from volcap_core.calibration import Calibration
+from volcap_core.color import ColourModel
+from volcap_core.settings import setting, validate
+
+from .correspondence import CorrespondenceConfig, View, cameras_in, find_correspondences, merge_matches
+from .methods import CHART_FREE_MODELS, chart_free_fit
+
+
+@dataclass
+class ColorFitConfig:
+    model: str = setting('affine_3x4', 'per-camera model', choices=CHART_FREE_MODELS)
+    reference: str = setting('mean', 'mean (no camera favoured), chart (on top of the calibration\'s chart '
+                                     'models, anchored to the board views) or a camera name')
+    fit_min_fraction: float = setting(0.001, 'camera pairs with fewer pixels in correspondence are left out',
+                                      0.0, 1.0)
+    correspondence: CorrespondenceConfig = field(default_factory=lambda: CorrespondenceConfig(min_fraction=0.0))
+
+    def validate(self) -> None:
+        validate(self)
+
+
+@dataclass
+class ColorFitReport:
+    calibration: Calibration           # the input calibration with the new colour models
+    source: str                        # chart_free or chart_harmonised
+    cameras: list[str]
+    pairs: int
+    correspondences: int
+
+    def line(self) -> str:
+        return (f'{self.source} models for {len(self.cameras)} cameras from {self.pairs} camera pairs '
+                f'({self.correspondences} correspondences)')
+
+
+def run(cfg: ColorFitConfig, sets: list[list[View]], calibration: Calibration,
+        anchor: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, source_bag: str = '') -> ColorFitReport:
+    """Fit on ``sets`` (views of capture frame sets posed by ``calibration``) and store the models
+    in ``calibration``. ``reference='chart'`` needs the chart models in the calibration and
+    ``anchor``, each camera's chart samples (measured, reference)."""
+    cfg.validate()
+    cameras = cameras_in(sets, calibration)
+    matches = merge_matches([find_correspondences(v, cfg.correspondence) for v in sets], cfg.fit_min_fraction)
+    if not matches:
+        raise ValueError(f'no camera pair has {cfg.fit_min_fraction:.1%} of its pixels in correspondence')
+    base = None
+    if cfg.reference == 'chart':
+        missing = [c for c in cameras if calibration.cameras[c].colour is None]
+        if missing:
+            raise ValueError(f'reference chart needs chart colour models; {", ".join(missing)} have none')
+        if anchor is None:
+            raise ValueError('reference chart needs the chart samples of the board views')
+        base = {c: ColourModel.from_dict(calibration.cameras[c].colour) for c in cameras}
+    models = chart_free_fit(matches, cameras, cfg.model, cfg.reference, base=base, anchor=anchor)
+    source = 'chart_harmonised' if base else 'chart_free'
+    for c, m in models.items():
+        previous = calibration.cameras[c].colour
+        entry = {**m.to_dict(), 'source': source,
+                 'fit': {'bag': str(source_bag), 'model': cfg.model, 'reference': cfg.reference,
+                         'pairs': sum(c in p for p in matches), 'frame_sets': len(sets)}}
+        if previous is not None:
+            entry['previous'] = previous     # the chart fit, with its patch errors
+        calibration.cameras[c].colour = entry
+    return ColorFitReport(calibration, source, list(models), len(matches), sum(len(m) for m in matches.values()))

@@ -1,0 +1,118 @@
+"""Colour models as the calibration file stores them, and the sRGB / CIELAB conversions every
+stage shares.
+
+A model maps a camera's sRGB colours onto the reference: the paper's diagonal matrix works on
+the encoded values as published (paper 000 Eqs. 6-10); the others work on linear RGB (sRGB
+decoding), where a camera's gain, white balance and crosstalk are linear: a 3x3 matrix, an
+affine 3x4, Finlayson's root-polynomial (colour-science) and a per-channel gamma before a 3x3.
+Fitting them is volcap_calib's job; applying them is everyone's.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import colour
+import cv2
+import numpy as np
+
+METHODS = ('paper_diagonal', 'matrix_3x3', 'affine_3x4', 'root_polynomial_2', 'root_polynomial_3', 'gamma_3x3')
+ROOT_DEGREE = {'root_polynomial_2': 2, 'root_polynomial_3': 3}
+
+
+_D65 = colour.CCS_ILLUMINANTS['CIE 1931 2 Degree Standard Observer']['D65']
+_SRGB_TO_XYZ = colour.RGB_COLOURSPACES['sRGB'].matrix_RGB_to_XYZ
+
+
+# The sRGB transfer functions are called directly, not through colour.cctf_*: same result, a
+# quarter of the cost inside the Lab refinement's least-squares loop.
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    return colour.models.eotf_sRGB(np.clip(rgb, 0.0, 1.0))
+
+
+def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
+    return colour.models.eotf_inverse_sRGB(np.clip(rgb, 0.0, 1.0))
+
+
+def linear_to_lab(linear: np.ndarray) -> np.ndarray:
+    """CIELAB (D65) of linear sRGB values (clipped to [0, 1], as the encoded image would be)."""
+    return colour.XYZ_to_Lab(np.clip(linear, 0.0, 1.0) @ _SRGB_TO_XYZ.T, _D65)
+
+
+def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
+    """CIELAB (D65) of sRGB values in [0, 1]."""
+    return linear_to_lab(srgb_to_linear(rgb))
+
+
+def delta_e2000(rgb_a: np.ndarray, rgb_b: np.ndarray) -> np.ndarray:
+    return colour.delta_E(srgb_to_lab(rgb_a), srgb_to_lab(rgb_b), method='CIE 2000')
+
+
+def model_features(method: str, linear: np.ndarray, exponents=None) -> np.ndarray:
+    if method == 'gamma_3x3':
+        return np.clip(linear, 0.0, None) ** np.asarray(exponents if exponents is not None else (1.0, 1.0, 1.0))
+    if method == 'matrix_3x3':
+        return linear
+    if method == 'affine_3x4':
+        return np.concatenate([linear, np.ones(linear.shape[:-1] + (1,))], axis=-1)
+    if method in ROOT_DEGREE:
+        return colour.characterisation.polynomial_expansion_Finlayson2015(linear, ROOT_DEGREE[method])
+    raise ValueError(f'unknown colour model {method!r}; choose from {METHODS}')
+
+
+@dataclass
+class ColourModel:
+    """corrected = features(camera colour) @ matrix.T (linear RGB), or the paper's diagonal on sRGB.
+
+    ``gamma_3x3`` raises each linearised channel to its own exponent first: a camera whose tone
+    curve is not quite sRGB (gamma 2.0-2.4) is then linear again before the matrix. ``post``, a
+    3x4 affine map applied to the corrected linear RGB, is the harmonisation a chart-free fit
+    adds on top of a chart model (volcap_color)."""
+    method: str
+    matrix: np.ndarray   # (3, K)
+    exponents: tuple[float, float, float] | None = None   # gamma_3x3 only
+    post: np.ndarray | None = None                         # (3, 4), not for the paper's diagonal
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f'unknown colour model {self.method!r}; choose from {METHODS}')
+        self.matrix = np.asarray(self.matrix, dtype=np.float64)
+        if self.post is not None:
+            self.post = np.asarray(self.post, dtype=np.float64)
+            if self.post.shape != (3, 4) or self.method == 'paper_diagonal':
+                raise ValueError('post must be a 3x4 affine map on a linear-RGB model')
+
+    def apply(self, rgb: np.ndarray) -> np.ndarray:
+        """sRGB (..., 3) in [0, 1] -> corrected sRGB in [0, 1]."""
+        rgb = np.asarray(rgb, dtype=np.float64)
+        if self.method == 'paper_diagonal':
+            return np.clip(rgb @ self.matrix.T, 0.0, 1.0)
+        return linear_to_srgb(self.apply_linear(srgb_to_linear(rgb)))
+
+    def apply_linear(self, linear: np.ndarray) -> np.ndarray:
+        """Linear camera RGB -> corrected linear RGB (unclipped); not for the paper's diagonal."""
+        out = model_features(self.method, linear, self.exponents) @ self.matrix.T
+        return out if self.post is None else out @ self.post[:, :3].T + self.post[:, 3]
+
+    def apply_image(self, image: np.ndarray) -> np.ndarray:
+        """uint8 RGB image -> corrected uint8 RGB image (a 256^3 table would be the live form)."""
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f'expected an (H, W, 3) uint8 image, got {image.dtype} {image.shape}')
+        if self.method == 'paper_diagonal':
+            return cv2.transform(image, self.matrix.astype(np.float32))
+        out = self.apply(image.reshape(-1, 3) / 255.0)
+        return np.round(out * 255.0).astype(np.uint8).reshape(image.shape)
+
+    def to_dict(self) -> dict:
+        d = {'method': self.method, 'matrix': [[float(v) for v in row] for row in self.matrix]}
+        if self.exponents is not None:
+            d['exponents'] = [float(v) for v in self.exponents]
+        if self.post is not None:
+            d['post'] = [[float(v) for v in row] for row in self.post]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'ColourModel':
+        exponents, post = d.get('exponents'), d.get('post')
+        return cls(d['method'], np.asarray(d['matrix'], dtype=np.float64),
+                   tuple(float(v) for v in exponents) if exponents is not None else None,
+                   np.asarray(post, dtype=np.float64) if post is not None else None)

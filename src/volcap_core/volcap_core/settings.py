@@ -1,0 +1,179 @@
+"""One definition per setting: a config dataclass field carries its default, description and
+allowed range or choices, and everything else is derived from it (node parameters, ``validate``,
+the parameter tables in ``docs/``).
+
+    @dataclass
+    class FusionConfig:
+        voxel_size: float = setting(0.004, 'TSDF voxel edge (m)', 0.0005, 0.1)
+
+Nested config dataclasses are flattened (their field names must be unique within the outer
+config). Tuples become ROS list parameters; ``None`` is stood for by ``none_as``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import MISSING, dataclass, field, fields, is_dataclass
+from typing import Any
+
+
+def setting(default=MISSING, description: str = '', low=None, high=None, *, choices: tuple | None = None,
+            read_only: bool = False, none_as=None, default_factory=MISSING, ros: bool = True):
+    """A dataclass field with its documentation and limits.
+
+    ``low``/``high`` bound numbers (and every element of a tuple); ``choices`` lists the allowed
+    values; ``read_only`` settings take effect at start only; ``none_as`` is the list parameter
+    value that stands for ``None``; ``ros=False`` keeps a setting out of node parameters."""
+    metadata = {'description': description, 'low': low, 'high': high, 'choices': choices,
+                'read_only': read_only, 'none_as': none_as, 'ros': ros}
+    if default_factory is not MISSING:
+        return field(default_factory=default_factory, metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One flattened setting of a config class."""
+    name: str
+    path: tuple[str, ...]        # attribute path from the outer config (nested configs)
+    default: Any
+    description: str
+    low: Any
+    high: Any
+    choices: tuple | None
+    read_only: bool
+    none_as: Any
+
+    @property
+    def parameter_default(self):
+        """The default as a ROS parameter value (lists for tuples, ``none_as`` for None)."""
+        return to_parameter(self, self.default)
+
+    @property
+    def range_text(self) -> str:
+        if self.choices:
+            return ' \\| '.join(str(c) for c in self.choices)
+        if self.low is not None and self.high is not None:
+            return f'{self.low} - {self.high}'
+        return ''
+
+
+def _default(f: dataclasses.Field):
+    if f.default is not MISSING:
+        return f.default
+    if f.default_factory is not MISSING:
+        return f.default_factory()
+    raise TypeError(f'setting {f.name} has no default')
+
+
+def settings(cls) -> list[Setting]:
+    """Every documented setting of a config class, nested configs flattened, in field order."""
+    out: list[Setting] = []
+    hints = typing.get_type_hints(cls)
+    for f in fields(cls):
+        if is_dataclass(hints.get(f.name)) and isinstance(hints.get(f.name), type):
+            out += [dataclasses.replace(s, path=(f.name, *s.path)) for s in settings(hints[f.name])]
+            continue
+        m = f.metadata
+        if 'description' not in m or not m.get('ros', True):
+            continue
+        out.append(Setting(f.name, (f.name,), _default(f), m['description'], m['low'], m['high'], m['choices'],
+                           m['read_only'], m['none_as']))
+    names = [s.name for s in out]
+    if len(set(names)) != len(names):
+        raise TypeError(f'{cls.__name__}: flattened setting names must be unique, got {names}')
+    return out
+
+
+def to_parameter(s: Setting, value):
+    if value is None:
+        return s.none_as
+    if isinstance(value, tuple):
+        return list(value)
+    return value
+
+
+def from_parameter(s: Setting, value):
+    if s.none_as is not None and list(value if isinstance(value, (list, tuple)) else [value]) == list(s.none_as):
+        return None
+    if isinstance(s.default, tuple) or (s.default is None and isinstance(value, (list, tuple))):
+        return tuple(value)
+    if isinstance(s.default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def build(cls, values: dict[str, Any]):
+    """A config of ``cls`` from flattened setting values (ROS parameter form); the others keep
+    their defaults. Raises ValueError for unknown names and values out of range."""
+    specs = {s.name: s for s in settings(cls)}
+    unknown = set(values) - set(specs)
+    if unknown:
+        raise ValueError(f'{cls.__name__} has no setting {", ".join(sorted(unknown))}')
+    nested: dict[tuple, dict] = {}
+    for name, value in values.items():
+        s = specs[name]
+        nested.setdefault(s.path[:-1], {})[s.path[-1]] = from_parameter(s, value)
+    cfg = _construct(cls, (), nested)
+    validate(cfg)
+    return cfg
+
+
+def _construct(cls, prefix: tuple, nested: dict):
+    hints = typing.get_type_hints(cls)
+    kwargs = dict(nested.get(prefix, {}))
+    for f in fields(cls):
+        sub = hints.get(f.name)
+        if isinstance(sub, type) and is_dataclass(sub):
+            kwargs[f.name] = _construct(sub, (*prefix, f.name), nested)
+    return cls(**kwargs)
+
+
+def values(cfg) -> dict[str, Any]:
+    """The flattened settings of a config, in ROS parameter form."""
+    out = {}
+    for s in settings(type(cfg)):
+        v = cfg
+        for part in s.path:
+            v = getattr(v, part)
+        out[s.name] = to_parameter(s, v)
+    return out
+
+
+def validate(cfg) -> None:
+    """Check every setting of ``cfg`` (nested configs too) against its range and choices; a
+    config's own ``validate()`` calls this and adds the checks that span several fields."""
+    for s in settings(type(cfg)):
+        v = cfg
+        for part in s.path:
+            v = getattr(v, part)
+        _check(s, v)
+
+
+def _check(s: Setting, value) -> None:
+    if value is None:
+        if s.default is not None:
+            raise ValueError(f'{s.name} must be set')
+        return
+    if s.choices is not None and value not in s.choices:
+        raise ValueError(f'{s.name} must be one of {", ".join(map(str, s.choices))}, got {value!r}')
+    items = value if isinstance(value, tuple) else (value,)
+    for item in items:
+        if isinstance(item, bool) or not isinstance(item, (int, float)):
+            continue
+        if item != item:
+            raise ValueError(f'{s.name} must be a number, got {value!r}')
+        if (s.low is not None and item < s.low) or (s.high is not None and item > s.high):
+            raise ValueError(f'{s.name} must be within {s.low} - {s.high}, got {value!r}')
+
+
+def markdown_table(cls) -> str:
+    """The settings of ``cls`` as a Markdown table (parameter, default, range, description)."""
+    rows = ['| parameter | default | range | description |', '|---|---|---|---|']
+    for s in settings(cls):
+        default = s.parameter_default
+        text = repr(default) if isinstance(default, str) else str(default).lower() if isinstance(default, bool) \
+            else str(default)
+        rows.append(f'| `{s.name}` | `{text}` | {s.range_text} | {s.description}'
+                    f'{" (read-only)" if s.read_only else ""} |')
+    return '\n'.join(rows)

@@ -1,0 +1,287 @@
+"""`volcap eval colour`: every colour method on the same correspondences, scored as both papers do.
+
+Capture frame sets of a bag are cleaned (``volcap_filter``, the clean plate learnt from the bag),
+registered to colour at full resolution, smoothed, and matched between cameras with the
+calibration (``correspondence``). Frame sets alternate between fitting and scoring (fit on the
+1st, 3rd, ...; score on the 2nd, 4th, ...; one frame set is used for both and the report says
+so), so chart-free methods are scored on pixels they were not fitted to.
+
+- Paper 001 Tables 1-3: for every camera pair with at least ``eval_min_fraction`` of the pixels
+  in correspondence, mean CIEDE2000 (sRGB -> Lab D65) and PSNR (peak 255) of the corrected
+  colours at corresponding pixels; over pairs the mean, the mean weighted by correspondence
+  count and the standard deviation. The same over every pair with at least ``fit_min_fraction``
+  (``methods_all_pairs``): on a ring of stands the cross-stand pairs, where seams show in the
+  fused model, are below the 1 % of the paper's protocol.
+- Paper 000 Table 1: per camera the mean R, G, B and I difference (0-255) of the board's chart
+  patches to the reference chart, before and after each method (needs the bag's board views;
+  not for the neural methods, whose mapping depends on the pixel position, which the chart
+  samples do not keep).
+
+With ``neural`` (a ``volcap harmonise`` output folder) two more methods are scored: ``neural``,
+the per-camera networks D of paper 001, and ``neural_live``, their exported region LUTs (the
+same interpolation as the ``color_corrector`` node's integer kernel, in float: the kernel is
+within a level of it).
+
+Methods are fitted on pairs with at least ``fit_min_fraction`` (lower than the scoring
+threshold: on a 4-stand rig only same-stand pairs reach 1 %, and the thinner cross-stand pairs
+are what connects the stands).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from volcap_calib.colour import ColourModel, component_differences, delta_e2000, fit_model
+from volcap_calib.run import chart_samples, load_board
+from volcap_color.correspondence import (
+    CorrespondenceConfig,
+    Matches,
+    View,
+    cameras_in,
+    find_correspondences,
+    merge_matches,
+    split_frame_sets,
+)
+from volcap_color.methods import (
+    Mapping,
+    PixelMapping,
+    apply_mapping,
+    brown_lowe,
+    chart_free_fit,
+    fit_finlayson,
+    fit_reinhard,
+    fit_vandermonde,
+    identity,
+    moulon,
+    propagate,
+)
+from volcap_core.calibration import Calibration
+
+from .color_figures import write_colour_figures
+from .replay import capture_views
+
+METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon', 'paper_diagonal',
+           'volcap_chart', 'volcap_chart_free', 'volcap_chart_harmonised')
+
+
+@dataclass
+class ColourEvalConfig:
+    frames: int = 4                   # capture frame sets used (alternately fit / score)
+    eval_min_fraction: float = 0.01
+    fit_min_fraction: float = 0.001
+    max_scored_per_pair: int = 50_000
+    chart_free_model: str = 'affine_3x4'
+    chart_free_reference: str = 'mean'
+    anchor_weight: float = 0.05       # chart term of volcap_chart_harmonised, relative to correspondences
+    seed: int = 0
+    correspondence: CorrespondenceConfig = field(default_factory=lambda: CorrespondenceConfig(min_fraction=0.0))
+
+
+
+
+
+
+
+
+
+
+def _as_8bit(rgb: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(rgb, 0.0, 1.0) * 255.0) / 255.0
+
+
+def pair_scores(matches: dict[tuple[str, str], Matches], mappings: dict[str, Mapping], max_per_pair: int,
+                seed: int = 0) -> dict[str, dict]:
+    """Per pair: mean CIEDE2000 and PSNR (dB, peak 255) of the mapped colours, corrected images
+    being 8-bit; at most ``max_per_pair`` random correspondences are scored."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for (a, b), m in matches.items():
+        sel = np.arange(len(m)) if len(m) <= max_per_pair else rng.choice(len(m), max_per_pair, replace=False)
+        ca = _as_8bit(apply_mapping(mappings[a], m.colours_a[sel], m.pixels_a[sel]))
+        cb = _as_8bit(apply_mapping(mappings[b], m.colours_b[sel], m.pixels_b[sel]))
+        mse = float(np.mean((ca - cb) ** 2))
+        out[f'{a}-{b}'] = {'de2000': float(delta_e2000(ca, cb).mean()),
+                           'psnr': float(10 * np.log10(1.0 / max(mse, 1e-12))), 'n': len(m)}
+    return out
+
+
+def summarise(scores: dict[str, dict]) -> dict:
+    """Paper 001's columns: mean, correspondence-weighted mean and standard deviation over pairs."""
+    if not scores:
+        return {'de2000_mean': None, 'de2000_wmean': None, 'de2000_std': None, 'psnr_mean': None,
+                'psnr_wmean': None, 'psnr_std': None, 'pairs': 0}
+    n = np.array([s['n'] for s in scores.values()], float)
+    out = {}
+    for key in ('de2000', 'psnr'):
+        v = np.array([s[key] for s in scores.values()])
+        out.update({f'{key}_mean': float(v.mean()), f'{key}_wmean': float((v * n).sum() / n.sum()),
+                    f'{key}_std': float(v.std())})
+    out['pairs'] = len(scores)
+    return out
+
+
+def chart_table(samples: dict[str, tuple[np.ndarray, np.ndarray]], mapping: dict[str, Mapping]) -> dict:
+    """Paper 000 Table 1 for one method: per camera the signed and absolute R, G, B, I
+    differences (0-255) of the mapped chart patches to the reference, and their CIEDE2000."""
+    out = {}
+    for c, (measured, target) in samples.items():
+        if c not in mapping or not len(measured) or isinstance(mapping[c], PixelMapping):
+            continue
+        after = _as_8bit(mapping[c](measured))
+        d = component_differences(after, target)
+        out[c] = {'signed': d['signed'], 'abs': d['abs'], 'patch_de2000': float(delta_e2000(after, target).mean())}
+    return out
+
+
+def method_mappings(fit: dict[tuple[str, str], Matches], cameras: list[str], calibration: Calibration,
+                    chart_samples: dict[str, tuple[np.ndarray, np.ndarray]] | None, cfg: ColourEvalConfig
+                    ) -> tuple[dict[str, dict[str, Mapping]], dict[str, str], dict[str, dict[str, ColourModel]]]:
+    """Every method's per-camera mapping, the methods left out (with why) and our fitted models."""
+    out: dict[str, dict[str, Mapping]] = {'original': {c: identity for c in cameras}}
+    skipped = {}
+    out['reinhard'] = propagate(fit, cameras, fit_reinhard)
+    out['vandermonde'] = propagate(fit, cameras, fit_vandermonde)
+    out['finlayson'] = propagate(fit, cameras, fit_finlayson)
+    out['brown_lowe'] = brown_lowe(fit, cameras)
+    out['moulon'] = moulon(fit, cameras)
+    if chart_samples and all(len(chart_samples.get(c, ((),))[0]) for c in cameras):
+        out['paper_diagonal'] = {c: fit_model('paper_diagonal', *chart_samples[c]).apply for c in cameras}
+    else:
+        skipped['paper_diagonal'] = 'the bag has no board views of every camera to fit the chart diagonal from'
+    missing = [c for c in cameras if calibration.cameras[c].colour is None]
+    if missing:
+        skipped['volcap_chart'] = f'{", ".join(missing)} have no colour model in the calibration'
+    models = {}
+    if not missing:
+        models['volcap_chart'] = {c: ColourModel.from_dict(calibration.cameras[c].colour) for c in cameras}
+    models['volcap_chart_free'] = chart_free_fit(fit, cameras, cfg.chart_free_model, cfg.chart_free_reference,
+                                                 seed=cfg.seed)
+    if 'volcap_chart' in models and 'paper_diagonal' in out:
+        models['volcap_chart_harmonised'] = chart_free_fit(fit, cameras, cfg.chart_free_model, 'chart',
+                                                           base=models['volcap_chart'],
+                                                           anchor=chart_samples, anchor_weight=cfg.anchor_weight,
+                                                           seed=cfg.seed)
+    else:
+        skipped['volcap_chart_harmonised'] = 'needs the calibration\'s colour models and the bag\'s board views'
+    for name, per_camera in models.items():
+        out[name] = {c: per_camera[c].apply for c in cameras}
+    return out, skipped, models
+
+
+def neural_mappings(models_dir: str | Path, views: list[View], cameras: list[str]
+                    ) -> tuple[dict[str, dict[str, PixelMapping]], dict, dict]:
+    """The ``neural`` (networks D) and ``neural_live`` (region LUTs) mappings of a ``volcap
+    harmonise`` folder, its manifest and the LUTs."""
+    from volcap_color.apply import RegionLut
+    from volcap_color.neural import load_harmonisation
+    harm = load_harmonisation(models_dir)
+    missing = [c for c in cameras if c not in harm.mappers]
+    if missing:
+        raise ValueError(f'{models_dir} has no networks for {", ".join(missing)}')
+    sizes = {v.name: (v.camera.width, v.camera.height) for v in views}
+    luts = {c: RegionLut.load(Path(models_dir) / f'{c}.lut.npz') for c in cameras}
+    net = {c: PixelMapping(lambda rgb, xy, c=c: harm.map_colours(c, rgb, xy), sizes[c]) for c in cameras}
+    live = {c: PixelMapping(luts[c].apply_points, sizes[c]) for c in cameras}
+    return {'neural': net, 'neural_live': live}, harm.report, luts
+
+
+def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: dict | None = None,
+                    cfg: ColourEvalConfig = ColourEvalConfig(), progress: bool = True,
+                    neural: str | Path | None = None) -> tuple[dict, dict]:
+    """(report, extras): the report as documented in the README; extras hold the first scored
+    frame set's views and every method's mappings, for figures."""
+    sets = capture_views(bag, calibration, cfg.frames, progress)
+    cameras = cameras_in(sets, calibration)
+    per_set = [find_correspondences(views, cfg.correspondence)
+               for views in tqdm(sets, desc='correspondences', unit='set', disable=not progress)]
+    fit_idx, score_idx = split_frame_sets(len(sets))
+    fit = merge_matches([per_set[i] for i in fit_idx], cfg.fit_min_fraction)
+    scored_sets = [per_set[i] for i in score_idx]
+    scored = merge_matches(scored_sets, cfg.eval_min_fraction)
+    thin = merge_matches(scored_sets, cfg.fit_min_fraction)
+    scored_keys = {f'{a}-{b}' for a, b in scored}
+    mappings, skipped, models = method_mappings(fit, cameras, calibration, chart_samples, cfg)
+    neural_info, luts = None, {}
+    if neural is not None:
+        extra, manifest, luts = neural_mappings(neural, [v for views in sets for v in views], cameras)
+        mappings.update(extra)
+        trained = manifest.get('frame_sets', {}).get('trained', [])
+        neural_info = {'models': str(neural), 'trained_on': trained, 'reference': manifest['reference'],
+                       'scored_sets_trained_on': sorted(set(trained) & set(score_idx)),
+                       'export_error': manifest.get('export_error', {})}
+    methods, all_pairs, pairs, table1 = {}, {}, {}, {}
+    for name in tqdm(mappings, desc='scoring methods', unit='method', disable=not progress):
+        pairs[name] = pair_scores(thin, mappings[name], cfg.max_scored_per_pair, cfg.seed)
+        methods[name] = summarise({p: v for p, v in pairs[name].items() if p in scored_keys})
+        all_pairs[name] = summarise(pairs[name])
+        if chart_samples:
+            table1[name] = chart_table(chart_samples, mappings[name])
+    report = {'bag': str(bag), 'cameras': cameras, 'frame_sets': {'fit': fit_idx, 'scored': score_idx,
+                                                                   'held_out': score_idx != fit_idx},
+              'methods': methods, 'methods_all_pairs': all_pairs, 'skipped': skipped, 'pairs': pairs,
+              'correspondences': {'fit_pairs': {f'{a}-{b}': len(m) for (a, b), m in fit.items()},
+                                  'scored_pairs': {f'{a}-{b}': len(m) for (a, b), m in scored.items()}},
+              'table1': table1, 'neural': neural_info,
+              'models': {name: {c: m.to_dict() for c, m in per.items()} for name, per in models.items()},
+              'config': asdict(cfg)}
+    return report, {'views': sets[score_idx[0]], 'mappings': mappings, 'models': models, 'region_luts': luts}
+
+
+def format_report(report: dict) -> str:
+    """Markdown: the pairwise table (paper 001) and the chart table averages (paper 000)."""
+    def f(v, d=2):
+        return '-' if v is None else f'{v:.{d}f}'
+    cfg = report['config']
+    lines = []
+    for key, title in (('methods', f"Pairs with >= {cfg['eval_min_fraction']:.0%} of the pixels in correspondence "
+                                   '(paper 001 protocol):'),
+                       ('methods_all_pairs', f"Every pair with >= {cfg['fit_min_fraction']:.1%} (across stands too):")):
+        lines += [title, '', '| method | CIEDE2000 mean | weighted | std | PSNR mean | weighted | std | pairs |',
+                  '|---|---|---|---|---|---|---|---|']
+        for name, s in report[key].items():
+            lines.append(f"| {name} | {f(s['de2000_mean'])} | {f(s['de2000_wmean'])} | {f(s['de2000_std'])} | "
+                         f"{f(s['psnr_mean'])} | {f(s['psnr_wmean'])} | {f(s['psnr_std'])} | {s['pairs']} |")
+        lines.append('')
+    for name, why in report['skipped'].items():
+        lines.append(f'{name} left out: {why}')
+    if report['table1']:
+        lines += ['', 'Chart patches (paper 000 Table 1), mean over cameras, 0-255:', '',
+                  '| method | R | G | B | I | abs R | abs G | abs B | abs I | patch CIEDE2000 |',
+                  '|---|---|---|---|---|---|---|---|---|---|']
+        for name, cams in report['table1'].items():
+            if not cams:
+                continue
+            sig = {k: np.mean([c['signed'][k] for c in cams.values()]) for k in 'RGBI'}
+            ab = {k: np.mean([c['abs'][k] for c in cams.values()]) for k in 'RGBI'}
+            de = np.mean([c['patch_de2000'] for c in cams.values()])
+            lines.append(f'| {name} | ' + ' | '.join(f'{sig[k]:.2f}' for k in 'RGBI') + ' | '
+                         + ' | '.join(f'{ab[k]:.2f}' for k in 'RGBI') + f' | {de:.2f} |')
+    held = 'held-out frame sets' if report['frame_sets']['held_out'] else 'the frame set the methods were fitted on'
+    lines += ['', f"Scored on {held}: {report['frame_sets']['scored']}."]
+    neural = report.get('neural')
+    if neural:
+        lines.append(f"neural: trained on frame sets {neural['trained_on']}, reference {neural['reference']}"
+                     + (f"; WARNING: also trained on scored frame sets {neural['scored_sets_trained_on']}"
+                        if neural['scored_sets_trained_on'] else ''))
+    return '\n'.join(lines)
+
+
+def run(bag: str | Path, calibration_path: str | Path, cfg: ColourEvalConfig | None = None,
+        board_file: str | Path | None = None, chart: bool = True, neural: str | Path | None = None,
+        figures: str | Path | None = None, progress: bool = True) -> dict:
+    """`volcap eval colour`: the report (``table1_skipped`` says why the chart table is left out,
+    ``figures`` lists the PNGs written when ``figures`` is a folder)."""
+    calibration = Calibration.load(calibration_path)
+    samples, why = (None, 'skipped (--no-chart)') if not chart else \
+        chart_samples(bag, load_board(board_file), list(calibration.cameras), progress)
+    report, extras = evaluate_colour(bag, calibration, samples, cfg or ColourEvalConfig(), progress, neural=neural)
+    if why:
+        report['table1_skipped'] = why
+    if figures:
+        report['figures'] = [str(p) for p in write_colour_figures(figures, report, extras['views'],
+                                                                  extras['mappings'], extras['models'],
+                                                                  extras['region_luts'])]
+    return report

@@ -1,0 +1,249 @@
+"""Scores of fused sequences and the fusion of posed RGB-D frame folders.
+
+`volcap eval fusion DIR BAG`: each fused frame of ``DIR/frames`` is matched by capture stamp
+to the synthetic bag's ground truth, and scored against the subject mesh at that instant:
+
+- accuracy: mean distance (mm) from the fused mesh's vertices to the ground-truth surface;
+- completeness: the fraction of the *observable* ground-truth surface within 5 mm of the fused
+  mesh. Observable means that at least one camera's depth sensor sees the point (inside its
+  image and range, not occluded, not at a grazing angle beyond what the sensor measures, not on
+  a surface too dark in the infrared for the sensor to return depth from most of it) and the
+  point lies in that camera's colour image (the cleaned depth is registered to colour). The
+  synthetic subject is a union of overlapping solids whose inner faces no camera can see, and
+  the soles rest on the floor; ``completeness_all`` scores the whole mesh for reference.
+
+``raw_fusion``: a bag's frame set fused straight from the raw streams, for the raw-vs-clean
+figure of `volcap run` (paper 000, Figs. 16 and 18).
+
+`volcap fuse-frames FOLDER`: the ``frame-NNNNNN.{color.png,depth.png,pose.txt}`` layout (one
+moving camera, e.g. ``../shared/data/rgbd_box``) fused with ``TsdfFusion``, plus a bare Open3D
+integration of the same frames (``bare_open3d_fusion``) for comparison.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+from tqdm import tqdm
+
+from volcap_core.camera import CameraModel, depth_to_millimetres
+from volcap_core.files import write_json
+from volcap_core.poses import invert
+from volcap_fusion.sequence import read_manifest, read_ply, write_ply
+from volcap_fusion.tsdf import (
+    CameraView,
+    FusedModel,
+    FusionConfig,
+    TsdfFusion,
+    bare_open3d_fusion,
+    crop_to_box,
+    raycasting_scene,
+)
+
+COMPLETENESS_MM = 5.0
+DROPOUT_WINDOW_PX = 7       # neighbourhood over which a sensor's dropout rate is judged
+MAX_DROPOUT_RATE = 0.5      # a point is unmeasurable where the sensor drops most returns around it
+
+
+def surface_samples(vertices: np.ndarray, triangles: np.ndarray, count: int, seed: int = 0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points spread uniformly by area over a mesh, and their face normals."""
+    rng = np.random.default_rng(seed)
+    a, b, c = (vertices[triangles[:, k]].astype(np.float64) for k in range(3))
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1)
+    faces = rng.choice(len(triangles), count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    points = (1 - s)[:, None] * a[faces] + (s * (1 - r2))[:, None] * b[faces] + (s * r2)[:, None] * c[faces]
+    normals = cross[faces] / np.maximum(area[faces], 1e-12)[:, None]
+    return points, normals
+
+
+def dropout_rate(dropped: np.ndarray) -> np.ndarray:
+    """Local fraction of a depth image's pixels for which the sensor returned nothing (dark
+    material, grazing angle), over ``DROPOUT_WINDOW_PX`` squares."""
+    return cv2.blur(dropped.astype(np.float32), (DROPOUT_WINDOW_PX, DROPOUT_WINDOW_PX))
+
+
+def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.RaycastingScene,
+               sensors: list[tuple[CameraModel, np.ndarray, CameraModel, np.ndarray, np.ndarray | None]],
+               min_range: float, max_range: float, grazing_cos: float) -> np.ndarray:
+    """Which points some camera measures: ``sensors`` holds per camera (depth model,
+    T_world_depth, colour model, T_world_color, the depth image's ``dropout_rate`` or None)."""
+    seen = np.zeros(len(points), bool)
+    for depth_model, T_wd, color_model, T_wc, dropouts in sensors:
+        eye = T_wd[:3, 3]
+        ray = points - eye
+        dist = np.linalg.norm(ray, axis=1)
+        ray /= dist[:, None]
+        ok = (dist >= min_range) & (dist <= max_range)
+        ok &= np.abs(np.sum(normals * ray, axis=1)) >= grazing_cos     # meshes' normals may face either way
+        for model, T, rates in ((depth_model, T_wd, dropouts), (color_model, T_wc, None)):
+            T_local = invert(T)
+            local = points @ T_local[:3, :3].T + T_local[:3, 3]
+            front = local[:, 2] > 0.05
+            px = np.full((len(points), 2), -1.0)
+            px[front] = model.project(local[front])
+            ok &= front & (px[:, 0] >= 0) & (px[:, 0] <= model.width - 1) & (px[:, 1] >= 0) \
+                & (px[:, 1] <= model.height - 1)
+            if rates is not None:
+                u, v = (np.round(px[ok, k]).astype(np.int64) for k in (0, 1))
+                ok[ok] = rates[v, u] < MAX_DROPOUT_RATE
+        rays = np.concatenate([np.broadcast_to(eye, ray.shape), ray], axis=1).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))['t_hit'].numpy()
+        ok &= hit >= dist - 0.002
+        seen |= ok
+    return seen
+
+
+def score_frame(model: FusedModel, truth: o3d.geometry.TriangleMesh, sensors, tof: dict, samples: int = 200_000
+                ) -> dict:
+    """Accuracy and completeness of one fused frame against its ground-truth mesh."""
+    gt_v, gt_t = np.asarray(truth.vertices), np.asarray(truth.triangles)
+    gt_scene = raycasting_scene(gt_v, gt_t)
+    if len(model.vertices) == 0:
+        return {'accuracy_mm': None, 'completeness': 0.0, 'completeness_all': 0.0, 'vertices': 0}
+    d_fused = gt_scene.compute_distance(o3d.core.Tensor(model.vertices.astype(np.float32))).numpy()
+    points, normals = surface_samples(gt_v, gt_t, samples)
+    seen = observable(points, normals, gt_scene, sensors, tof['min_range'], tof['max_range'], tof['grazing_cos'])
+    d_truth = model.raycasting_scene().compute_distance(
+        o3d.core.Tensor(points.astype(np.float32))).numpy()
+    close = d_truth <= COMPLETENESS_MM / 1000
+    return {'accuracy_mm': float(d_fused.mean() * 1000), 'accuracy_median_mm': float(np.median(d_fused) * 1000),
+            'accuracy_p90_mm': float(np.percentile(d_fused, 90) * 1000),
+            'completeness': float(close[seen].mean()) if seen.any() else 0.0,
+            'completeness_all': float(close.mean()), 'observable_fraction': float(seen.mean()),
+            'vertices': int(len(model.vertices))}
+
+
+def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True, max_frames: int | None = None
+                    ) -> dict:
+    from volcap_studio.session import GroundTruth
+    gt = GroundTruth(bag)
+    frames_dir = Path(run_dir) / 'frames'
+    entries = read_manifest(frames_dir)
+    if max_frames:
+        entries = entries[:max_frames]
+    by_stamp = {f['stamp_ns']: f for f in gt.frames if 'T_world_subject' in f}
+    stamps = np.array(sorted(by_stamp), dtype=np.int64)
+    if not entries or not len(stamps):
+        raise ValueError(f'nothing to score: {len(entries)} fused frames, {len(stamps)} ground-truth subject frames')
+    rig = gt.rig
+    tof = gt.doc['config']['tof']
+    per_frame = []
+    for entry in tqdm(entries, desc='scoring fused frames', unit='frame', disable=not progress):
+        nearest = int(stamps[np.argmin(np.abs(stamps - entry['stamp_ns']))])
+        if abs(nearest - entry['stamp_ns']) > 20_000_000:
+            raise ValueError(f'fused frame {entry["index"]} (stamp {entry["stamp_ns"]}) has no ground-truth frame')
+        index = by_stamp[nearest]['index']
+        truth = gt.subject_mesh(index)
+        dropped = gt.arrays(index, suffix='/dropped')
+        sensors = [(c.depth, gt.T_world_depth(c.name), c.color, gt.T_world_color(c.name),
+                    dropout_rate(dropped[f'{c.name}/dropped'])) for c in rig.cameras]
+        row = score_frame(read_ply(frames_dir / entry['ply']), truth, sensors, tof)
+        per_frame.append({'index': entry['index'], 'stamp_ns': entry['stamp_ns'], **row})
+    acc = [r['accuracy_mm'] for r in per_frame if r['accuracy_mm'] is not None]
+    return {'accuracy_mm': float(np.mean(acc)) if acc else None,
+            'completeness': float(np.mean([r['completeness'] for r in per_frame])),
+            'completeness_all': float(np.mean([r['completeness_all'] for r in per_frame])),
+            'completeness_threshold_mm': COMPLETENESS_MM, 'frames': len(per_frame), 'per_frame': per_frame}
+
+
+def raw_fusion(bag: str | Path, stamp_ns: int, T_world_color: dict[str, np.ndarray], cfg: FusionConfig,
+               tolerance_ns: int = 20_000_000) -> FusedModel:
+    """The frame set of ``bag`` at ``stamp_ns`` fused as it left the cameras (the "before" of
+    paper 000, Figs. 16 and 18): raw depth registered to colour with nothing removed, raw colour."""
+    from volcap_core.bag_io import BagReader
+    from volcap_core.frames import frame_sets, read_rig
+    from volcap_core.topics import CAPTURE
+    from volcap_filter.registration import DepthRegistration
+    with BagReader(bag) as reader:
+        rig = read_rig(reader)
+    for fs in frame_sets(bag, phases=(CAPTURE,)):
+        if abs(fs.stamp_ns - stamp_ns) > tolerance_ns:
+            continue
+        views = []
+        for name, f in fs.cameras.items():
+            if name not in T_world_color:
+                continue
+            c = f.color_model
+            registered = DepthRegistration(f.depth_model, c, rig.camera(name).T_color_depth,
+                                           (c.width, c.height)).register(f.depth).depth
+            depth_mm = depth_to_millimetres(registered)
+            views.append(CameraView(name, depth_mm, c, f.color, c, T_world_color[name]))
+        return TsdfFusion(cfg).fuse(views)
+    raise ValueError(f'{bag} has no capture frame set at {stamp_ns} ns')
+
+
+# posed RGB-D frame folders ------------------------------------------------------------------
+def read_frames_folder(folder: str | Path, intrinsics: str | Path, stride: int = 1
+                       ) -> tuple[CameraModel, CameraModel, list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]]:
+    """(depth model, colour model, [(name, depth mm, rgb, T_world_camera)]) of a frame folder."""
+    folder = Path(folder)
+    K = np.loadtxt(intrinsics)
+    if K.shape != (3, 3):
+        raise ValueError(f'{intrinsics}: expected a 3x3 intrinsic matrix')
+    names = sorted(p.name[:-len('.color.png')] for p in folder.glob('frame-*.color.png'))[::stride]
+    if not names:
+        raise FileNotFoundError(f'{folder} has no frame-NNNNNN.color.png')
+    frames = []
+    for name in names:
+        color = cv2.imread(str(folder / f'{name}.color.png'), cv2.IMREAD_COLOR)
+        depth = cv2.imread(str(folder / f'{name}.depth.png'), cv2.IMREAD_UNCHANGED)
+        if color is None or depth is None or depth.dtype != np.uint16:
+            raise ValueError(f'{folder / name}: colour PNG and 16-bit depth PNG expected')
+        pose = np.loadtxt(folder / f'{name}.pose.txt')
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise ValueError(f'{folder / name}.pose.txt: expected a finite 4x4 camera-to-world matrix')
+        frames.append((name, depth, cv2.cvtColor(color, cv2.COLOR_BGR2RGB), pose))
+    h, w = frames[0][1].shape
+    depth_model = CameraModel(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    ch, cw = frames[0][2].shape[:2]
+    color_model = depth_model if (ch, cw) == (h, w) else depth_model.scaled(cw, ch)
+    return depth_model, color_model, frames
+
+
+def fuse_frames(folder: str | Path, intrinsics: str | Path, cfg: FusionConfig, stride: int = 1
+                ) -> tuple[FusedModel, FusedModel, list[np.ndarray]]:
+    """(ours, bare Open3D cut to the same capture box, camera poses) for a frame folder. Each
+    frame is one camera of a static rig: all are fused into one volume."""
+    depth_model, color_model, frames = read_frames_folder(folder, intrinsics, stride)
+    views = [CameraView(n, d, depth_model, c, color_model, T) for n, d, c, T in frames]
+    fusion = TsdfFusion(cfg)
+    ours = fusion.fuse(views)
+    bare = bare_open3d_fusion(views, cfg)
+    box = fusion.capture_box(views)
+    bare = FusedModel(*crop_to_box(bare.vertices, bare.colors, bare.triangles, *box), bare.cameras)
+    return ours, bare, [v.T_world_camera for v in views]
+
+
+def surface_distance(a: FusedModel, b: FusedModel) -> dict:
+    """Symmetric vertex-to-surface distances between two meshes (mm)."""
+    ab = b.raycasting_scene().compute_distance(o3d.core.Tensor(a.vertices.astype(np.float32))).numpy()
+    ba = a.raycasting_scene().compute_distance(o3d.core.Tensor(b.vertices.astype(np.float32))).numpy()
+    both = np.concatenate([ab, ba]) * 1000
+    return {'mean_mm': float(both.mean()), 'median_mm': float(np.median(both)),
+            'p95_mm': float(np.percentile(both, 95)), 'ours_to_bare_mean_mm': float(ab.mean() * 1000),
+            'bare_to_ours_mean_mm': float(ba.mean() * 1000)}
+
+
+def fuse_folder(folder: str | Path, intrinsics: str | Path, cfg: FusionConfig, out: str | Path, stride: int = 1
+                ) -> dict:
+    """`volcap fuse-frames`: the folder fused into ``out`` (PLY), compared with a bare Open3D
+    integration; a render of both (PNG) and the report (JSON) are written beside it."""
+    from .render import render_rows
+    t0 = time.monotonic()
+    ours, bare, poses = fuse_frames(folder, intrinsics, cfg, stride=stride)
+    out = Path(out)
+    write_ply(out, ours)
+    comparison = surface_distance(ours, bare)
+    render = render_rows([('volcap', ours), ('bare Open3D', bare)], poses, out.with_suffix('.png'))
+    report = {'frames': len(poses), 'voxel_size': cfg.voxel_size, 'vertices': len(ours.vertices),
+              'triangles': len(ours.triangles), 'bare_vertices': len(bare.vertices),
+              'distance_to_bare_open3d': comparison, 'seconds': time.monotonic() - t0, 'render': str(render)}
+    write_json(out.with_suffix('.json'), report)
+    return report

@@ -1,0 +1,206 @@
+"""One camera's depth-cleaning session: what to do with each colour/depth pair as frames, camera
+models, the rig and the session phase arrive in any order.
+
+A pair is learnt into the clean plate (during the ``clean_plate`` phase, or while a requested
+capture still needs frames), cleaned, held (its camera models or the rig's depth-to-colour
+extrinsic are still to come: topics have no order across them, so a late clean-plate frame
+must still be learnt, not lost) or skipped (held too long, or unusable). The cleaner is rebuilt
+whenever the camera models, the registration mode or the rig change. The ``depth_filter`` node
+and the offline replay (``volcap_eval.replay``) both drive this class, so they decide alike.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from volcap_core import topics
+from volcap_core.camera import CameraModel
+from volcap_core.rig import Rig
+from volcap_core.settings import setting
+from volcap_core.sync import SYNC_TOLERANCE_MS
+
+from .mask import BackgroundModel
+from .pipeline import CleanResult, DepthCleaner, DepthFilterConfig
+from .registration import DepthRegistration
+
+
+@dataclass
+class DepthFilterNodeConfig:
+    """The depth_filter node's own settings (the cleaning itself: ``DepthFilterConfig``)."""
+    camera: str = setting('', 'camera name in the rig description (empty: the last part of the namespace)',
+                          read_only=True)
+    output_width: int = setting(0, 'cleaned depth width (0 = the colour width)', 0, 8192, read_only=True)
+    output_height: int = setting(0, 'cleaned depth height (0 = the colour height)', 0, 8192, read_only=True)
+    clean_plate_frames: int = setting(10, 'frames gathered by ~/capture_clean_plate', 1, 1000)
+    background_file: str = setting('', 'clean plate to load at start and save after learning (npz)',
+                                   read_only=True)
+    publish_points: bool = setting(True, 'publish the coloured point cloud')
+    sync_tolerance_ms: float = setting(SYNC_TOLERANCE_MS, 'colour/depth stamp tolerance', 0.0, 100.0,
+                                       read_only=True)
+    max_held_frames: int = setting(4, 'image pairs kept while their camera_info or the rig is still to come',
+                                   0, 100, read_only=True)
+    reliable: bool = setting(False, 'subscribe reliably (offline replay: lose no frame)', read_only=True)
+    figure_dir: str = setting('/tmp/volcap_figures', 'where ~/save_figures writes PNGs')
+
+
+@dataclass
+class FramePair:
+    """A colour and a depth image of one stamp; ``payload`` is whatever ``decode`` turns into
+    (rgb uint8, depth float32 metres): messages in the node, arrays offline."""
+    stamp_ns: int
+    frame_id: str              # the colour optical frame
+    registered: bool           # depth already registered to colour (same frame_id)
+    payload: Any
+
+
+@dataclass
+class Outcome:
+    """What happened: ``cleaned`` (result and cleaner set), ``learnt``, ``plate_done`` (the clean
+    plate is complete), ``held``, ``skipped`` or ``failed`` (the pair could not be used)."""
+    kind: str
+    message: str = ''
+    pair: FramePair | None = None
+    result: CleanResult | None = None
+    cleaner: DepthCleaner | None = None
+    color: np.ndarray | None = None
+    depth: np.ndarray | None = None
+
+
+class CleanPlateSession:
+    def __init__(self, camera: str, cfg: DepthFilterConfig, decode: Callable[[Any], tuple[np.ndarray, np.ndarray]],
+                 output_size: tuple[int, int] = (0, 0), max_held: int = 4,
+                 background: BackgroundModel | None = None):
+        self.camera = camera
+        self.cfg = cfg
+        self.decode = decode
+        self.output_size = output_size
+        self.max_held = max_held
+        self.background = background or BackgroundModel()
+        self.rig: Rig | None = None
+        self.models: dict[str, CameraModel] = {}
+        self.phase: str | None = None
+        self.learn_remaining = 0
+        self.cleaner: DepthCleaner | None = None
+        self.held: deque[tuple[FramePair, str | None]] = deque()
+
+    # inputs ------------------------------------------------------------------------------
+    def set_rig(self, rig: Rig) -> list[Outcome]:
+        rig.camera(self.camera)   # KeyError when the rig lacks this camera
+        self.rig = rig
+        self.cleaner = None       # rebuilt with the new extrinsic on the next frame
+        return self._process_held()
+
+    def set_model(self, stream: str, model: CameraModel) -> list[Outcome]:
+        self.models[stream] = model
+        return self._process_held()
+
+    def set_config(self, cfg: DepthFilterConfig) -> None:
+        self.cfg = cfg
+        if self.cleaner is not None:
+            self.cleaner.cfg = cfg
+
+    def set_phase(self, phase: str | None) -> list[Outcome]:
+        out = []
+        if phase == topics.CLEAN_PLATE and self.phase != phase:
+            self._reset_background()
+        elif self.phase == topics.CLEAN_PLATE and phase != topics.CLEAN_PLATE and not self._plate_frames_held():
+            out.append(self._plate_done())   # else once the held clean-plate frames are learnt
+        self.phase = phase
+        return out
+
+    def capture_clean_plate(self, frames: int) -> None:
+        """Learn a new clean plate from the next ``frames`` pairs, whatever the phase."""
+        self._reset_background()
+        self.learn_remaining = frames
+
+    def add(self, pair: FramePair) -> list[Outcome]:
+        """A new pair, in the current phase."""
+        self.held.append((pair, self.phase))
+        return self._process_held()
+
+    @property
+    def has_clean_plate(self) -> bool:
+        return self.background.frames > 0
+
+    # decisions ---------------------------------------------------------------------------
+    def waiting_for(self, pair: FramePair) -> str | None:
+        """What a pair still needs before it can be cleaned, or None."""
+        if 'color' not in self.models or 'depth' not in self.models:
+            return 'no camera_info yet'
+        if not pair.registered and self.rig is None:
+            return f'waiting for the rig on /{topics.RIG} (depth-to-colour extrinsic)'
+        return None
+
+    def _process_held(self) -> list[Outcome]:
+        out: list[Outcome] = []
+        while self.held:
+            pair, phase = self.held[0]
+            waiting = self.waiting_for(pair)
+            if waiting is None:
+                self.held.popleft()
+                out += self._process(pair, phase)
+            elif len(self.held) > self.max_held:
+                self.held.popleft()
+                out.append(Outcome('skipped', f'{self.camera}: {waiting}; frame skipped', pair))
+                out += self._late_plate_frame_done(phase)
+            else:
+                out.append(Outcome('held', f'{self.camera}: {waiting}; {len(self.held)} frame(s) held', pair))
+                break
+        return out
+
+    def _process(self, pair: FramePair, phase: str | None) -> list[Outcome]:
+        try:
+            cleaner = self._cleaner(pair)
+            color, depth = self.decode(pair.payload)
+            if phase == topics.CLEAN_PLATE or self.learn_remaining > 0:
+                cleaner.learn_background(color, depth)
+                out = [Outcome('learnt', pair=pair)]
+                if self.learn_remaining > 0:
+                    self.learn_remaining -= 1
+                    if self.learn_remaining == 0:
+                        out.append(self._plate_done())
+                else:
+                    out += self._late_plate_frame_done(phase)
+                return out
+            result = cleaner.process(color, depth)
+        except ValueError as e:   # conversion errors, sizes that disagree with camera_info, empty depth
+            return [Outcome('failed', f'{self.camera}: frame skipped: {e}', pair)]
+        return [Outcome('cleaned', pair=pair, result=result, cleaner=cleaner, color=color, depth=depth)]
+
+    def _cleaner(self, pair: FramePair) -> DepthCleaner:
+        color_model, depth_model = self.models['color'], self.models['depth']
+        c = self.cleaner
+        if c is None or c.registration.color_model != color_model or c.registration.depth_model != depth_model \
+                or c.registration.registered != pair.registered:
+            T = np.eye(4) if pair.registered else self.rig.camera(self.camera).T_color_depth
+            w, h = self.output_size
+            size = (w or color_model.width, h or color_model.height)
+            c = DepthCleaner(DepthRegistration(depth_model, color_model, T, size, registered=pair.registered),
+                             self.cfg)
+            c.background = self.background
+            self.cleaner = c
+        return c
+
+    def _reset_background(self) -> None:
+        self.background = BackgroundModel()
+        if self.cleaner is not None:
+            self.cleaner.background = self.background
+
+    def _plate_frames_held(self) -> bool:
+        return any(phase == topics.CLEAN_PLATE for _, phase in self.held)
+
+    def _late_plate_frame_done(self, phase: str | None) -> list[Outcome]:
+        """A held clean-plate frame was learnt or dropped after its phase ended: the plate is
+        complete once no other is held."""
+        if phase == topics.CLEAN_PLATE and self.phase != topics.CLEAN_PLATE and not self._plate_frames_held():
+            return [self._plate_done()]
+        return []
+
+    def _plate_done(self) -> Outcome:
+        frames = self.background.frames
+        if frames == 0:
+            return Outcome('skipped', f'{self.camera}: the clean-plate phase ended with no frame learnt')
+        return Outcome('plate_done', f'{self.camera}: clean plate learnt from {frames} frames')

@@ -1,0 +1,71 @@
+"""From a gathered frame set to the views the fusion integrates, and what to do about cameras that
+are missing or unusable (the tsdf_fusion node's decisions, without ROS)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from volcap_core import topics
+from volcap_core.settings import setting
+from volcap_core.sync import SYNC_TOLERANCE_MS
+
+from .tsdf import CameraView
+
+ALL = 'all'
+
+
+@dataclass
+class FusionNodeConfig:
+    """The tsdf_fusion node's own settings (the fusion itself: ``FusionConfig``)."""
+    cameras: tuple[str, ...] = setting((ALL,), 'cameras to fuse ("all": every calibrated camera)', read_only=True)
+    sync_tolerance_ms: float = setting(SYNC_TOLERANCE_MS, 'stamp tolerance within a frame set', 0.0, 100.0,
+                                       read_only=True)
+    frame_timeout_ms: float = setting(300.0, 'after this, fuse the cameras that arrived', 1.0, 10_000.0,
+                                      read_only=True)
+    min_cameras: int = setting(1, 'fewer usable cameras than this: the frame set is skipped', 1, 64)
+    queue_size: int = setting(2, 'frame sets waiting for fusion (the oldest is dropped)', 1, 100, read_only=True)
+    phases: tuple[str, ...] = setting((topics.CAPTURE,), 'session phases to fuse while one is announced on '
+                                      '/volcap/phase')
+    reliable: bool = setting(False, 'subscribe reliably (offline replay: lose no frame)', read_only=True)
+    marker_max_triangles: int = setting(150_000, 'the mesh marker is decimated above this', 1000, 10_000_000)
+    output_dir: str = setting('', 'write the sequence (PLY + GLB per time step) here', read_only=True)
+    output_formats: tuple[str, ...] = setting(('ply', 'glb'), 'sequence file formats', read_only=True)
+
+
+@dataclass
+class FrameSetViews:
+    """The views of one frame set, and the cameras left out of it."""
+    stamp_ns: int
+    views: list[CameraView]
+    missing: list[str]                                    # absent or unusable, sorted
+    problems: dict[str, str] = field(default_factory=dict)   # unusable camera -> why
+    skipped: str = ''                                     # why the set is not fused ('' = fuse it)
+
+
+def frame_set_views(stamp_ns: int, cameras: list[str], parts: dict[str, Any],
+                    to_view: Callable[[str, Any], CameraView], min_cameras: int) -> FrameSetViews:
+    """``parts[camera]`` is what ``to_view`` turns into a CameraView (absent or None: the camera
+    missed the set). A camera whose conversion fails is left out with the reason; a set with
+    fewer than ``min_cameras`` views is skipped."""
+    views, problems, absent = [], {}, []
+    for cam in cameras:
+        part = parts.get(cam)
+        if part is None:
+            absent.append(cam)
+            continue
+        try:
+            views.append(to_view(cam, part))
+        except (ValueError, KeyError) as e:
+            problems[cam] = str(e)
+    missing = sorted(set(absent) | set(problems))
+    skipped = ''
+    if len(views) < min_cameras:
+        skipped = (f'frame set {stamp_ns} skipped: {len(views)} of {len(cameras)} cameras'
+                   + (f' (missing {", ".join(missing)})' if missing else ''))
+    return FrameSetViews(stamp_ns, views, missing, problems, skipped)
+
+
+def fused_phase(announced: str | None, phases: tuple[str, ...]) -> bool:
+    """Whether a frame set captured while ``announced`` was the session phase is fused (no phase
+    announced, or no phase filter: every set)."""
+    return announced is None or not phases or announced in phases

@@ -1,0 +1,214 @@
+"""The synthetic 8-camera studio of paper 000: rig layout, session plan and frame rendering.
+
+Four stands (front, right, back, left) at ``stand_radius`` from the capture centre, two Azure
+Kinect-class cameras per stand at 1.7 m and 0.7 m, all converging on the subject. Intrinsics
+and the depth-to-colour offset start from a real factory calibration and vary a little per
+device, as they do between real units.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from volcap_calib.board import BoardConfig
+from volcap_core.camera import CameraModel
+from volcap_core.poses import look_at, make_transform, perturb
+from volcap_core.rig import Rig, RigCamera, rig_camera_from_k4a
+from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, CLEAN_PLATE, camera_names
+from volcap_studio import scene as sc
+from volcap_studio.render import CameraView, ColorResponse, DepthRender, SceneRaycaster, ToFModel
+
+SCENES = ('person', 'bunny')
+PHASE_GAP_NS = 1_000_000_000
+START_NS = 1_700_000_000_000_000_000
+
+
+@dataclass
+class SynthConfig:
+    cameras: int = 8
+    frames: int = 10
+    board_poses: int = 12
+    background_frames: int = 3
+    scene: str = 'person'
+    seed: int = 0
+    fps: float = 30.0
+    stamp_jitter_ms: float = 0.3
+    stand_radius: float = 1.8
+    heights: tuple[float, float] = (1.7, 0.7)
+    k4a_calibration: str = field(default_factory=lambda: default_k4a_calibration())
+    bunny_mesh: str = field(default_factory=lambda: default_bunny_mesh())
+    tof: ToFModel = field(default_factory=ToFModel)
+
+    def __post_init__(self):
+        if self.cameras < 1:
+            raise ValueError('need at least one camera')
+        if min(self.frames, self.board_poses, self.background_frames) < 0:
+            raise ValueError('frame counts must be >= 0')
+        if self.scene not in SCENES:
+            raise ValueError(f'unknown scene {self.scene!r}; choose from {SCENES}')
+        needed = [('Azure Kinect calibration', self.k4a_calibration)]
+        if self.scene == 'bunny':
+            needed.append(('bunny mesh', self.bunny_mesh))
+        for what, path in needed:
+            if not Path(path).is_file():
+                raise FileNotFoundError(f'{what} {path} not found: set VOLCAP_DATA to the shared data folder')
+
+
+@dataclass
+class FramePlan:
+    index: int
+    phase: str
+    stamp_ns: int
+    subject_pose: np.ndarray | None = None   # T_studio_subject
+    board_pose: np.ndarray | None = None     # T_studio_board
+
+
+@dataclass
+class CameraFrame:
+    color: np.ndarray
+    depth: DepthRender
+    color_subject: np.ndarray   # bool: colour pixel centre sees the subject
+    depth_subject: np.ndarray   # bool: depth pixel centre sees the subject
+    color_stamp_ns: int
+    depth_stamp_ns: int
+
+
+def stand_layout(cfg: SynthConfig) -> list[tuple[str, np.ndarray]]:
+    """(name, T_studio_color) of the nominal rig: stands evenly round the centre, two heights."""
+    n_stands = (cfg.cameras + 1) // 2
+    out = []
+    for i, name in enumerate(camera_names(cfg.cameras)):
+        stand, level = divmod(i, 2)
+        angle = -np.pi / 2 + 2 * np.pi * stand / n_stands   # stand 0 in front (-y)
+        height = cfg.heights[level]
+        eye = (cfg.stand_radius * np.cos(angle), cfg.stand_radius * np.sin(angle), height)
+        target = (0.0, 0.0, 1.05 if height > 1.2 else 0.8)
+        out.append((name, look_at(eye, target)))
+    return out
+
+
+def make_rig(cfg: SynthConfig, rng: np.random.Generator) -> tuple[Rig, dict[str, np.ndarray]]:
+    """The rig (per-device intrinsics and depth-to-colour offsets) and GT T_studio_color."""
+    base = rig_camera_from_k4a(cfg.k4a_calibration, 'base')
+    cams, poses = [], {}
+    for name, T in stand_layout(cfg):
+        poses[name] = perturb(T, rng.normal(0, 1.0, 3), rng.normal(0, 0.008, 3))
+        color = _vary(base.color, rng, 0.008, 4.0)
+        depth = _vary(base.depth, rng, 0.005, 2.0)
+        T_cd = perturb(base.T_color_depth, rng.normal(0, 0.15, 3), rng.normal(0, 0.0008, 3))
+        cams.append(RigCamera(name, color, depth, T_cd, serial=f'SYNTH{cfg.seed:04d}{len(cams):02d}'))
+    return Rig(cams, name='synthetic_studio'), poses
+
+
+def _vary(cam: CameraModel, rng, focal_rel: float, centre_px: float) -> CameraModel:
+    f = 1 + rng.normal(0, focal_rel)
+    return CameraModel(cam.width, cam.height, cam.fx * f, cam.fy * f * (1 + rng.normal(0, 0.001)),
+                       cam.cx + rng.normal(0, centre_px), cam.cy + rng.normal(0, centre_px), cam.dist)
+
+
+def board_poses(cfg: SynthConfig, board: BoardConfig, rng: np.random.Generator) -> list[np.ndarray]:
+    """T_studio_board for each calibration frame: the board turned towards every direction in
+    turn (so each camera sees it several times, and neighbouring stands see it together),
+    at two heights and tilts, with a little random placement."""
+    x0, y0, x1, y1 = board.extent
+    centre_local = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    out = []
+    for k in range(cfg.board_poses):
+        yaw = -np.pi / 2 + 2 * np.pi * k / max(cfg.board_poses, 1) + rng.normal(0, 0.05)
+        pitch = np.radians(12.0 if k % 2 == 0 else -8.0) + rng.normal(0, 0.05)
+        facing = np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)])
+        z = -facing                                  # board z points into the board
+        y = np.array([0.0, 0.0, -1.0]) - z * (-z[2])  # "down" in the board plane
+        y /= np.linalg.norm(y)
+        R = np.stack([np.cross(y, z), y, z], axis=1)
+        centre = np.array([0.0, 0.0, 1.35 if k % 2 == 0 else 0.95]) + 0.25 * facing * np.array([1, 1, 0]) \
+            + rng.normal(0, 0.05, 3)
+        out.append(make_transform(R, centre - R @ centre_local))
+    return out
+
+
+def session_plan(cfg: SynthConfig, board: BoardConfig, rng: np.random.Generator) -> list[FramePlan]:
+    """Clean plate, then the board poses, then the subject capture, at ``fps`` with gaps between."""
+    period = int(round(1e9 / cfg.fps))
+    plans, t = [], START_NS
+    for k in range(cfg.background_frames):
+        plans.append(FramePlan(len(plans), CLEAN_PLATE, t))
+        t += period
+    t += PHASE_GAP_NS
+    for T in board_poses(cfg, board, rng):
+        plans.append(FramePlan(len(plans), CALIBRATION_PHASE, t, board_pose=T))
+        t += period
+    t += PHASE_GAP_NS
+    for k in range(cfg.frames):
+        plans.append(FramePlan(len(plans), CAPTURE, t, subject_pose=sc.subject_pose(k, cfg.fps)))
+        t += period
+    return plans
+
+
+class StudioRenderer:
+    """Renders every camera of a planned frame; holds per-camera rays and colour responses."""
+
+    def __init__(self, cfg: SynthConfig, rig: Rig, T_studio_color: dict[str, np.ndarray], board: BoardConfig,
+                 rng: np.random.Generator):
+        self.cfg, self.rig, self.rng = cfg, rig, rng
+        self.T_studio_color = T_studio_color
+        self.T_studio_depth = {c.name: T_studio_color[c.name] @ c.T_color_depth for c in rig.cameras}
+        self.responses = {c.name: ColorResponse.random(rng) for c in rig.cameras}
+        # Poles stand 10 cm behind the cameras mounted on them.
+        stand_xy = sorted({tuple(np.round(T[:2, 3] * (1 + 0.1 / np.linalg.norm(T[:2, 3])), 3))
+                           for T in T_studio_color.values()})
+        self.background = sc.room(stand_xy)
+        self.subject = sc.person() if cfg.scene == 'person' else sc.bunny_on_pedestal(cfg.bunny_mesh)
+        self.board = sc.board_object(board)
+        self.lights, self.ambient = sc.studio_lights()
+        static = SceneRaycaster(self.background)
+        self.color_views = {c.name: CameraView(static, c.color, T_studio_color[c.name], c.color.pixel_rays())
+                            for c in rig.cameras}
+        self.depth_views = {c.name: CameraView(static, c.depth, self.T_studio_depth[c.name], c.depth.pixel_rays())
+                            for c in rig.cameras}
+
+    def moving_objects(self, plan: FramePlan) -> list[sc.SceneObject]:
+        objects = []
+        if plan.subject_pose is not None:
+            self.subject.pose = plan.subject_pose
+            objects.append(self.subject)
+        if plan.board_pose is not None:
+            self.board.pose = plan.board_pose
+            objects.append(self.board)
+        return objects
+
+    def render(self, plan: FramePlan) -> dict[str, CameraFrame]:
+        moving = self.moving_objects(plan)
+        dynamic = SceneRaycaster(moving, first_index=len(self.background)) if moving else None
+        full = SceneRaycaster(self.background + moving)
+        # Object index -1 (no hit) picks the trailing False.
+        is_subject = np.array([o.role == 'subject' for o in self.background + moving] + [False])
+        jitter = self.cfg.stamp_jitter_ms * 1e6
+        out = {}
+        for cam in self.rig.cameras:
+            n = cam.name
+            color, color_obj = self.color_views[n].color(dynamic, self.lights, self.ambient, self.responses[n],
+                                                         self.rng)
+            depth = self.depth_views[n].depth(dynamic, full, self.cfg.tof, self.rng)
+            stamp = plan.stamp_ns + int(np.clip(self.rng.normal(0, jitter), -3 * jitter, 3 * jitter))
+            out[n] = CameraFrame(color, depth, is_subject[color_obj], is_subject[depth.objects],
+                                 stamp, stamp + int(self.rng.normal(0, 0.1e6)))
+        return out
+
+
+
+def shared_data_dir() -> Path:
+    """Real data the studio is modelled on: ``$VOLCAP_DATA``, else ``../shared/data`` beside the
+    checkout (factory calibration in ``azure_kinect/``, the bunny in ``meshes/``)."""
+    return Path(os.environ.get('VOLCAP_DATA') or Path(__file__).resolve().parents[4] / 'shared' / 'data')
+
+
+def default_k4a_calibration() -> str:
+    return str(shared_data_dir() / 'azure_kinect' / 'calibration.json')
+
+
+def default_bunny_mesh() -> str:
+    return str(shared_data_dir() / 'meshes' / 'bunny.ply')

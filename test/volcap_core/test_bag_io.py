@@ -1,0 +1,124 @@
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+
+from volcap_core.bag_io import BagError, BagReader, BagWriter, message_class
+from volcap_core.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
+from volcap_driver.playback import Schedule, output_topic, parse_remaps, restamp_cdr
+
+
+def write_sample(path, n=6, compression='none', shape=(48, 64)):
+    frames = [np.full((*shape, 3), (k * 20) % 256, np.uint8) for k in range(n)]
+    with BagWriter(path, compression) as bag:
+        bag.add_topic('volcap/rig', 'std_msgs/msg/String', latched=True)
+        bag.write('volcap/rig', String(data='cameras: []'), 1_000)
+        for k, img in enumerate(frames):
+            stamp = 2_000_000_000 + k * 33_000_000
+            bag.write('cam0/color/image_raw', numpy_to_image(img, 'rgb8', stamp, 'cam0_color_optical_frame'), stamp)
+    return frames
+
+
+@pytest.mark.parametrize('compression', ['none', 'zstd'])
+def test_write_read_round_trip(tmp_path, compression):
+    frames = write_sample(tmp_path / 'bag', compression=compression)
+    with BagReader(tmp_path / 'bag') as bag:
+        assert bag.topics == {'volcap/rig': 'std_msgs/msg/String', 'cam0/color/image_raw': 'sensor_msgs/msg/Image'}
+        assert bag.latched_topics == {'volcap/rig'}
+        assert bag.message_count == 7
+        msgs = list(bag.messages(['cam0/color/image_raw']))
+    assert [m.stamp_ns for m in msgs] == [2_000_000_000 + k * 33_000_000 for k in range(6)]
+    for m, img in zip(msgs, frames):
+        decoded = m.decode()
+        assert stamp_to_ns(decoded.header.stamp) == m.stamp_ns
+        assert np.array_equal(image_to_numpy(decoded), img)
+
+
+def test_zstd_is_smaller_and_mcap_tools_decode_it(tmp_path):
+    write_sample(tmp_path / 'plain', shape=(240, 320))
+    write_sample(tmp_path / 'packed', compression='zstd', shape=(240, 320))
+    plain = (tmp_path / 'plain' / 'plain.mcap').stat().st_size
+    packed = (tmp_path / 'packed' / 'packed.mcap').stat().st_size
+    assert packed < plain / 5
+    with open(tmp_path / 'packed' / 'packed.mcap', 'rb') as f:
+        decoded = [(c.topic, m) for _, c, _, m in make_reader(f, decoder_factories=[DecoderFactory()])
+                   .iter_decoded_messages()]
+    images = [m for topic, m in decoded if topic == 'cam0/color/image_raw']
+    assert len(images) == 6 and images[3].encoding == 'rgb8' and images[3].width == 320
+    assert bytes(images[3].data)[:3] == bytes([60, 60, 60])
+
+
+def test_truncated_bag_is_read_up_to_the_damage(tmp_path):
+    frames = write_sample(tmp_path / 'bag', n=20, shape=(240, 320))
+    mcap = tmp_path / 'bag' / 'bag.mcap'
+    mcap.write_bytes(mcap.read_bytes()[:mcap.stat().st_size // 2])
+    (tmp_path / 'bag' / 'metadata.yaml').unlink()        # as a recorder killed mid-write leaves it
+    read = []
+    with BagReader(tmp_path / 'bag') as bag:
+        assert 'no metadata.yaml' in bag.damage and 'truncated' in bag.damage
+        assert bag.topics['cam0/color/image_raw'] == 'sensor_msgs/msg/Image'
+        assert bag.latched_topics == {'volcap/rig'}
+        with pytest.raises(BagError, match='corrupt or truncated after'):
+            for m in bag.messages(['cam0/color/image_raw']):
+                read.append(image_to_numpy(m.decode()))
+    assert 5 <= len(read) < 20
+    assert all(np.array_equal(a, b) for a, b in zip(read, frames))
+
+
+def test_garbage_and_missing_bags(tmp_path):
+    with pytest.raises(BagError, match='does not exist'):
+        BagReader(tmp_path / 'nope')
+    (tmp_path / 'empty').mkdir()
+    with pytest.raises(BagError, match='no metadata.yaml'):
+        BagReader(tmp_path / 'empty')
+    write_sample(tmp_path / 'bag')
+    (tmp_path / 'bag' / 'bag.mcap').write_bytes(b'not an mcap file at all' * 10)
+    with pytest.raises(BagError):
+        with BagReader(tmp_path / 'bag') as bag:
+            list(bag.messages())
+    with pytest.raises(BagError, match='exists'):
+        BagWriter(tmp_path / 'bag').open()
+
+
+def test_sqlite3_bags_are_read(tmp_path):
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(tmp_path / 'sq', version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conn = w.add_connection('cam0/color/image_raw', 'sensor_msgs/msg/Image', typestore=ts)
+        for k in range(3):
+            w.write(conn, 10 + k, serialize_message(numpy_to_image(np.full((4, 5, 3), k, np.uint8), 'rgb8', 10 + k)))
+    with BagReader(tmp_path / 'sq') as bag:
+        msgs = list(bag.messages())
+    assert [image_to_numpy(m.decode())[0, 0, 0] for m in msgs] == [0, 1, 2]
+
+
+def test_message_class_errors():
+    assert message_class('sensor_msgs/msg/Image') is Image
+    with pytest.raises(BagError, match='not available'):
+        message_class('nonexistent_msgs/msg/Foo')
+
+
+def test_restamp_patches_only_the_header_stamp():
+    img = numpy_to_image(np.arange(60, dtype=np.uint8).reshape(4, 5, 3), 'rgb8', 123, 'frame')
+    patched = deserialize_message(restamp_cdr(serialize_message(img), 9_876_543_210_012), Image)
+    assert stamp_to_ns(patched.header.stamp) == 9_876_543_210_012
+    assert patched.header.frame_id == 'frame' and bytes(patched.data) == bytes(img.data)
+    with pytest.raises(ValueError):
+        restamp_cdr(b'\x01\x02', 0)
+
+
+def test_topic_mapping_and_schedule():
+    remaps = parse_remaps(['cam0/color/image_raw:=/k4a/rgb/image_raw'])
+    assert output_topic('cam0/color/image_raw', remaps, 'studio') == 'k4a/rgb/image_raw'
+    assert output_topic('/cam1/depth/image_raw', remaps, '/studio/') == 'studio/cam1/depth/image_raw'
+    assert output_topic('volcap/rig', {}, '') == 'volcap/rig'
+    with pytest.raises(ValueError, match='FROM:=TO'):
+        parse_remaps(['nonsense'])
+    s = Schedule(bag_start_ns=1000, wall_start_ns=50, rate=2.0)
+    assert s.wall_time(3000) == 1050
+    assert Schedule(1000, 50, 1.0, as_fast_as_possible=True).wall_time(10**12) == 50
+    assert s.rebase(3000, 1050, 0.5).wall_time(4000) == 3050

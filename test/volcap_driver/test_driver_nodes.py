@@ -1,0 +1,161 @@
+"""Nodes in their own processes, talking to real rclpy subscribers in the test process."""
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from volcap_bringup.processes import start_node, stop
+from volcap_core import qos
+from volcap_core.bag_io import BagReader
+from volcap_core.conversions import image_to_numpy, stamp_to_ns
+from volcap_studio.session import GroundTruth
+
+pytestmark = pytest.mark.ros
+
+def test_player_replays_with_original_stamps_and_latched_rig(studio_bag, probe_factory, procs, play):
+    gt = GroundTruth(studio_bag)
+    probe = probe_factory([('cam0/color/image_raw', Image, qos.EVERY_FRAME),
+                           ('cam7/depth/camera_info', CameraInfo, qos.EVERY_FRAME),
+                           ('volcap/rig', String, qos.LATCHED)])
+    player = play(studio_bag, topics=['cam0/color/image_raw', 'cam7/depth/camera_info', 'volcap/rig'])
+    assert probe.spin_until(lambda: player.poll() is not None, 60)
+    assert player.returncode == 0
+    probe.spin_until(lambda: len(probe.got['cam0/color/image_raw']) >= 5, 2)
+    stamps = [stamp_to_ns(m.header.stamp) for _, m in probe.got['cam0/color/image_raw']]
+    assert stamps == [f['stamps']['cam0']['color'] for f in gt.frames]
+    with BagReader(studio_bag) as r:
+        first = next(r.messages(['cam0/color/image_raw'])).decode()
+    assert np.array_equal(image_to_numpy(probe.got['cam0/color/image_raw'][0][1]), image_to_numpy(first))
+    assert len(probe.got['cam7/depth/camera_info']) == 5
+    assert yaml.safe_load(probe.got['volcap/rig'][0][1].data)['cameras'][7]['name'] == 'cam7'
+
+
+def test_late_subscriber_still_gets_the_rig(studio_bag, probe_factory, procs, play):
+    early = probe_factory([('cam0/depth/image_raw', Image, qos.EVERY_FRAME)])
+    play(studio_bag, exit_when_done=False, topics=['cam0/depth/image_raw', 'volcap/rig'])
+    assert early.spin_until(lambda: len(early.got['cam0/depth/image_raw']) == 5, 60)
+    late = probe_factory([('volcap/rig', String, qos.LATCHED)])
+    assert late.spin_until(lambda: late.got['volcap/rig'], 20)
+    assert stop(procs.pop()) == 0
+
+
+def test_remap_and_namespace(studio_bag, probe_factory, procs, play):
+    probe = probe_factory([('/k4a/rgb/image_raw', Image, qos.EVERY_FRAME),
+                           ('/studio/cam1/depth/camera_info', CameraInfo, qos.EVERY_FRAME)])
+    player = play(studio_bag, topics=['cam0/color/image_raw', 'cam1/depth/camera_info'],
+                  remap=['cam0/color/image_raw:=/k4a/rgb/image_raw'], namespace='studio')
+    assert probe.spin_until(lambda: player.poll() is not None, 60)
+    probe.spin_until(lambda: len(probe.got['/k4a/rgb/image_raw']) == 5, 2)
+    assert len(probe.got['/k4a/rgb/image_raw']) == 5
+    assert len(probe.got['/studio/cam1/depth/camera_info']) == 5
+
+
+def test_recorder_writes_what_the_player_publishes(studio_bag, tmp_path, probe_factory, procs, play):
+    out = tmp_path / 'recorded'
+    recorder = start_node('volcap_driver', 'recorder', {'out': str(out), 'compression': 'zstd',
+                                                        'topics': ['/cam0/color/image_raw', '/volcap/rig']})
+    procs.append(recorder)
+    # The player starts once the recorder has discovered and subscribed to both its topics.
+    player = play(studio_bag, topics=['cam0/color/image_raw', 'volcap/rig'])
+    probe = probe_factory([('volcap/diagnostics', DiagnosticArray, qos.EVENTS)])
+    assert probe.spin_until(lambda: player.poll() is not None, 60)
+    assert player.returncode == 0
+    time.sleep(0.5)
+    assert stop(recorder) == 0
+    with BagReader(out) as r:
+        assert r.topics == {'cam0/color/image_raw': 'sensor_msgs/msg/Image', 'volcap/rig': 'std_msgs/msg/String'}
+        assert 'volcap/rig' in r.latched_topics
+        recorded = [m.decode() for m in r.messages(['cam0/color/image_raw'])]
+    with BagReader(studio_bag) as r:
+        original = {stamp_to_ns(m.header.stamp): m for m in (x.decode() for x in r.messages(['cam0/color/image_raw']))}
+    assert len(recorded) == 5
+    for m in recorded:
+        assert bytes(m.data) == bytes(original[stamp_to_ns(m.header.stamp)].data)
+
+
+def test_bad_bag_is_reported_and_the_node_keeps_running(tmp_path, probe_factory, procs, play):
+    bad = tmp_path / 'bad'
+    bad.mkdir()
+    (bad / 'metadata.yaml').write_text('rosbag2_bagfile_information: {version: 9, storage_identifier: mcap}\n')
+    probe = probe_factory([('volcap/diagnostics', DiagnosticArray, qos.EVENTS)])
+    player = play(bad, exit_when_done=False)
+    errors = lambda: [s for _, m in probe.got['volcap/diagnostics'] for s in m.status  # noqa: E731
+                      if s.level == DiagnosticStatus.ERROR]
+    assert probe.spin_until(lambda: errors(), 30)
+    assert 'bad' in errors()[0].message
+    time.sleep(0.5)
+    assert player.poll() is None         # still running, reporting
+    assert stop(procs.pop()) == 1        # and says it failed when stopped
+
+
+def test_truncated_bag_plays_what_it_can_then_fails(studio_bag, tmp_path, probe_factory, procs, play):
+    import shutil
+    bag = tmp_path / 'bag'
+    shutil.copytree(studio_bag, bag, ignore=shutil.ignore_patterns('ground_truth'))
+    mcap = bag / f'{studio_bag.name}.mcap'
+    mcap.write_bytes(mcap.read_bytes()[:mcap.stat().st_size * 2 // 3])   # recorder killed mid-write
+    probe = probe_factory([('volcap/diagnostics', DiagnosticArray, qos.EVENTS),
+                           ('cam0/depth/camera_info', CameraInfo, qos.EVERY_FRAME)])
+    play(bag, exit_when_done=False, topics=['cam0/depth/camera_info'])
+    failed = lambda: [s for _, m in probe.got['volcap/diagnostics'] for s in m.status  # noqa: E731
+                      if s.level == DiagnosticStatus.ERROR]
+    assert probe.spin_until(failed, 60)
+    assert 'corrupt or truncated' in failed()[0].message
+    # The readable two thirds were played before the error.
+    assert 2 <= len(probe.got['cam0/depth/camera_info']) < 5
+    assert stop(procs.pop()) == 1
+
+
+def test_import_k4a_and_replay(tmp_path, shared_data, probe_factory, procs, play):
+    out = tmp_path / 'k4a'
+    run = subprocess.run([sys.executable, '-m', 'volcap_bringup.cli', 'import-k4a',
+                          str(shared_data / 'azure_kinect' / 'recording.mkv'), '--out', str(out), '--quiet'],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert 'device 001514394512' in run.stdout
+    probe = probe_factory([('cam0/depth/image_raw', Image, qos.EVERY_FRAME),
+                           ('cam0/color/image_raw', Image, qos.EVERY_FRAME),
+                           ('volcap/rig', String, qos.LATCHED)])
+    player = play(out, topics=['cam0/depth/image_raw', 'cam0/color/image_raw', 'volcap/rig'])
+    assert probe.spin_until(lambda: player.poll() is not None, 60)
+    assert probe.spin_until(lambda: probe.got['cam0/depth/image_raw'] and probe.got['cam0/color/image_raw'], 5)
+    depth = image_to_numpy(probe.got['cam0/depth/image_raw'][0][1])
+    color = image_to_numpy(probe.got['cam0/color/image_raw'][0][1])
+    assert depth.shape == (576, 640) and color.shape == (720, 1280, 3)
+    valid = depth[depth > 0] / 1000.0
+    assert valid.size > 0.5 * depth.size and 0.3 < np.median(valid) < 3.0   # a desk scene within NFOV range
+    rig = yaml.safe_load(probe.got['volcap/rig'][0][1].data)
+    assert rig['cameras'][0]['serial'] == '001514394512'
+    assert rig['cameras'][0]['depth']['width'] == 640
+
+
+def test_synthetic_rig_publishes_live(probe_factory, procs, shared_data):
+    probe = probe_factory([('cam1/depth/image_raw', Image, qos.EVERY_FRAME),
+                           ('cam0/color/image_raw', Image, qos.EVERY_FRAME),
+                           ('volcap/rig', String, qos.LATCHED)])
+    procs.append(start_node('volcap_studio', 'synthetic_rig', {'cameras': 2, 'frames': 1, 'fps': 10.0}))
+    assert probe.spin_until(lambda: len(probe.got['cam1/depth/image_raw']) >= 3 and probe.got['volcap/rig'], 120)
+    stamps = [stamp_to_ns(m.header.stamp) for _, m in probe.got['cam1/depth/image_raw']]
+    assert abs(stamps[-1] / 1e9 - time.time()) < 5          # live stamps, not bag stamps
+    assert np.diff(stamps).min() > 0.05e9                       # ~10 fps
+    assert image_to_numpy(probe.got['cam0/color/image_raw'][0][1]).shape == (720, 1280, 3)
+    assert stop(procs.pop()) == 0
+
+
+def test_start_offset_and_loop(studio_bag, probe_factory, procs, play):
+    gt = GroundTruth(studio_bag)
+    capture = {f['stamps']['cam4']['color'] for f in gt.frames_in('capture')}
+    offset = (min(capture) - gt.frames[0]['stamps']['cam4']['color']) / 1e9 - 0.01
+    probe = probe_factory([('cam4/color/camera_info', CameraInfo, qos.EVERY_FRAME)])
+    play(studio_bag, topics=['cam4/color/camera_info'], start_offset=offset, loop=True,
+         as_fast_as_possible=True, exit_when_done=False)
+    assert probe.spin_until(lambda: len(probe.got['cam4/color/camera_info']) >= 6, 60)
+    stamps = [stamp_to_ns(m.header.stamp) for _, m in probe.got['cam4/color/camera_info']]
+    assert set(stamps) == capture            # only the capture part, again and again
+    assert stop(procs.pop()) == 0

@@ -1,0 +1,109 @@
+"""The colour evaluation: capture views replayed from a bag, correspondences against ground truth, the whole harness end to end."""
+import json
+
+import numpy as np
+
+from volcap_bringup.cli import main
+from volcap_calib.colour import ColourModel
+from volcap_color.apply import ImageCorrector
+from volcap_color.correspondence import View, match_pair
+from volcap_core.calibration import Calibration
+from volcap_eval.color import METHODS, capture_views
+from volcap_filter.registration import DepthRegistration
+from volcap_studio.session import GroundTruth
+
+
+def test_correspondences_agree_with_ground_truth(studio_bag, gt_calibration):
+    """Matches from the bag's noisy, cleaned depth land within 1 px of where the ground-truth
+    surface point projects, for >= 99 % of matches of every scored pair (>= 1 % of the pixels)."""
+    gt = GroundTruth(studio_bag)
+    calibration = gt_calibration(gt)
+    views = capture_views(studio_bag, calibration, 1, progress=False)[0]
+    index = next(f for f in range(len(gt.frames)) if gt.frames[f]['phase'] == 'capture')
+    arrays = gt.arrays(index)
+    truth = {}
+    for v in views:
+        cam = gt.rig.camera(v.name)
+        reg = DepthRegistration(cam.depth, cam.color, cam.T_color_depth, output_size=(v.camera.width, v.camera.height))
+        truth[v.name] = View(v.name, v.color, reg.register(arrays[f'{v.name}/depth_clean']).depth, v.camera,
+                             v.T_world_camera)
+    scored = 0
+    for i, a in enumerate(views):
+        for b in views[i + 1:]:
+            m = match_pair(a, b)
+            if m.fraction < 0.01:
+                continue
+            scored += 1
+            u, v = m.pixels_a[:, 0], m.pixels_a[:, 1]
+            z = truth[a.name].depth[v, u]
+            has = z > 0
+            assert has.mean() > 0.99
+            pts = truth[a.name].rays()[v, u][has] * z[has, None]
+            T = np.linalg.inv(b.T_world_camera) @ a.T_world_camera
+            expected = b.camera.project(pts @ T[:3, :3].T + T[:3, 3])
+            err = np.linalg.norm(expected - m.pixels_b[has], axis=1)
+            assert (err <= 1.0).mean() >= 0.99, f'{a.name}-{b.name}: {(err <= 1.0).mean():.4f} within 1 px'
+            assert np.abs(m.colours_a - m.colours_b).mean() < 0.2    # same surface, similar colour
+    assert scored >= 2
+
+
+def test_eval_colour_and_colour_fit_end_to_end(studio_bag, tmp_path, gt_calibration):
+    gt = GroundTruth(studio_bag)
+    calibration = tmp_path / 'calibration.yaml'
+    gt_calibration(gt, {'method': 'matrix_3x3', 'matrix': np.eye(3).tolist()}).save(calibration)
+    out = tmp_path / 'colour.json'
+    assert main(['eval', 'colour', str(studio_bag), '--calibration', str(calibration), '--frames', '2',
+                 '--json', str(out), '--figures', str(tmp_path / 'fig'), '--quiet']) == 0
+    report = json.loads(out.read_text())
+    assert report['frame_sets']['held_out']
+    keys = {'de2000_mean', 'de2000_wmean', 'de2000_std', 'psnr_mean', 'psnr_wmean', 'psnr_std', 'pairs'}
+    present = set(report['methods'])
+    assert present | set(report["skipped"]) == set(METHODS) and set(report["methods_all_pairs"]) == present
+    for name, s in report['methods'].items():
+        assert set(s) == keys and s['pairs'] >= 2, name
+    original, ours = report['methods']['original'], report['methods']['volcap_chart_free']
+    assert ours['de2000_mean'] < 0.6 * original['de2000_mean'] and ours['psnr_mean'] > original['psnr_mean'] + 3
+    assert (tmp_path / 'fig' / 'colour_methods.png').stat().st_size > 10_000
+    assert (tmp_path / 'fig' / 'colour_images.png').stat().st_size > 10_000
+
+    fitted = tmp_path / 'fitted.yaml'
+    assert main(['colour-fit', str(studio_bag), '--calibration', str(calibration), '--frames', '1',
+                 '--out', str(fitted), '--model', 'matrix_3x3', '--quiet']) == 0
+    result = Calibration.load(fitted)
+    for c in gt.rig.names:
+        colour = result.cameras[c].colour
+        assert colour['source'] == 'chart_free' and colour['previous']['method'] == 'matrix_3x3'
+        ImageCorrector(ColourModel.from_dict(colour))     # usable by the live corrector
+    assert main(['colour-fit', str(studio_bag), '--calibration', str(calibration), '--out', str(fitted),
+                 '--reference', 'nobody', '--quiet']) == 2
+
+
+def test_harmonise_and_eval_neural_end_to_end(studio_bag, tmp_path, gt_calibration, capsys):
+    """`volcap harmonise` on the small studio bag (trained on frame set 0, checked on 1), then the
+    colour harness scores the networks and their live form beside the baselines."""
+    from volcap_studio.session import GroundTruth
+    calibration = tmp_path / 'calibration.yaml'
+    gt_calibration(GroundTruth(studio_bag)).save(calibration)
+    models = tmp_path / 'models'
+    assert main(['harmonise', str(studio_bag), '--calibration', str(calibration), '--out', str(models),
+                 '--frames', '2', '--points', '20000', '--field-epochs', '3', '--field-batch', '2000',
+                 '--field-lr', '1e-3', '--mapper-points', '3000', '--mapper-epochs', '3', '--mapper-lr', '1e-3',
+                 '--lut-colours', '9', '--lut-grid', '4x3', '--reference', 'cam1', '--quiet']) == 0
+    manifest = json.loads((models / 'manifest.json').read_text())
+    cams = GroundTruth(studio_bag).rig.names
+    assert manifest['frame_sets'] == {'read': 2, 'trained': [0], 'checked': [1], 'checked_held_out': True}
+    assert set(manifest['export_error']) == set(cams) and manifest['reference'] == 'cam1'
+    assert all((models / f'{c}.lut.npz').exists() and (models / f'{c}.mapper.pt').exists() for c in cams)
+    assert (models / 'training.png').stat().st_size > 10_000 and not (models / 'checkpoint.pt').exists()
+    report_path = tmp_path / 'colour.json'
+    assert main(['eval', 'colour', str(studio_bag), '--calibration', str(calibration), '--frames', '2',
+                 '--no-chart', '--neural', str(models), '--json', str(report_path), '--figures',
+                 str(tmp_path / 'fig'), '--quiet']) == 0
+    report = json.loads(report_path.read_text())
+    assert report['neural']['trained_on'] == [0] and report['neural']['scored_sets_trained_on'] == []
+    for name in ('neural', 'neural_live'):
+        s = report['methods'][name]
+        assert s['pairs'] >= 1 and np.isfinite(s['de2000_mean']) and s['psnr_mean'] > 10
+    assert main(['harmonise', str(studio_bag), '--calibration', str(calibration), '--out', str(models),
+                 '--lut-grid', '9', '--quiet']) == 2
+    assert '--lut-grid is NXxNY' in capsys.readouterr().err

@@ -1,0 +1,205 @@
+"""Depth registration, flying-pixel filters, masks and the depth evaluation, without ROS."""
+
+import cv2
+import numpy as np
+import pytest
+
+from volcap_core.rig import rig_camera_from_k4a
+from volcap_filter.flying import FlyingPixelConfig, flying_pixels, paper_flying_pixels
+from volcap_filter.mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
+from volcap_filter.pipeline import DepthCleaner, DepthFilterConfig, sanitise_depth
+from volcap_filter.registration import DepthRegistration
+
+
+@pytest.fixture(scope='module')
+def k4a(shared_data):
+    return rig_camera_from_k4a(shared_data / 'azure_kinect' / 'calibration.json', 'cam0')
+
+
+def test_projection_matches_opencv(k4a):
+    reg = DepthRegistration(k4a.depth, k4a.color, k4a.T_color_depth, (1280, 720))
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 3.0, (576, 640)).astype(np.float32)
+    uv, zc = reg.project(depth)
+    v, u = rng.integers(150, 420, 50), rng.integers(150, 490, 50)
+    p = k4a.depth.pixel_rays()[v, u] * depth[v, u, None]
+    q = (k4a.T_color_depth[:3, :3] @ p.T).T + k4a.T_color_depth[:3, 3]
+    np.testing.assert_allclose(uv[v, u], k4a.color.project(q), atol=1e-3)
+    np.testing.assert_allclose(zc[v, u], q[:, 2], rtol=1e-5)
+
+
+def test_registration_has_no_holes_and_keeps_steps_apart(k4a):
+    depth = np.full((576, 640), 2.0, np.float32)
+    reg = DepthRegistration(k4a.depth, k4a.color, k4a.T_color_depth, (1280, 720))   # output denser than depth
+    out = reg.register(depth).depth
+    footprint = cv2.morphologyEx((out > 0).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((9, 9), np.uint8))
+    core = cv2.erode(footprint, np.ones((21, 21), np.uint8)).astype(bool)
+    assert core.mean() > 0.5
+    assert (out[core] > 0).all(), 'forward warping left holes'
+    single = np.zeros(out.shape, np.float32)   # what splatting pixels alone gives
+    uv = reg.project(depth)[0].reshape(-1, 2)
+    ok = np.isfinite(uv).all(axis=1)
+    x, y = np.round(uv[ok]).astype(int).T
+    inb = (x >= 0) & (x < 1280) & (y >= 0) & (y < 720)
+    single[y[inb], x[inb]] = 1
+    assert (single[core] == 0).mean() > 0.2
+    depth[200:380, 250:400] = 1.0          # a box in front of the wall
+    out = reg.register(depth).depth
+    # No surface invented between box and wall: depths are ~1 m or ~2 m, nothing in between.
+    vals = out[out > 0]
+    assert ((vals > 1.1) & (vals < 1.9)).sum() == 0
+
+
+def test_registration_pass_through_and_size_errors(k4a):
+    reg = DepthRegistration(k4a.color, k4a.color, np.eye(4), registered=True)
+    depth = np.zeros((720, 1280), np.float32)
+    depth[100:200, 300:500] = 1.5
+    r = reg.register(depth)
+    assert r.depth.shape == (360, 640)
+    assert np.isclose(r.depth[75, 200], 1.5) and r.depth[10, 10] == 0
+    with pytest.raises(ValueError, match='camera_info says'):
+        reg.register(np.zeros((10, 10), np.float32))
+    with pytest.raises(ValueError, match='4x4'):
+        DepthRegistration(k4a.depth, k4a.color, np.eye(3))
+
+
+def _step_scene(rng, noise=0.003):
+    """Fronto-parallel near surface (left, 1.5 m) over a far one (right, 3 m) with one column
+    of mixed pixels between them, a speckle blob and noise."""
+    z = np.full((200, 200), 3.0, np.float32)
+    z[:, :100] = 1.5
+    z += rng.normal(0, noise, z.shape).astype(np.float32)
+    z[:, 100] = rng.uniform(1.7, 2.8, 200)
+    flying = np.zeros(z.shape, bool)
+    flying[:, 100] = True
+    z[40:43, 40:43] += 0.3     # speckle
+    return z, flying
+
+
+def test_paper_eq5_flags_steps_and_horizontal_ignores_vertical_ones():
+    z, flying = _step_scene(np.random.default_rng(0), noise=0.001)
+    flagged = paper_flying_pixels(z, 'all')
+    assert flagged[flying].mean() > 0.95
+    # It also removes the true edge pixels on both sides of the step (its weakness).
+    assert flagged[:, 99].mean() > 0.9 and flagged[:, 101].mean() > 0.9
+    assert flagged[40:43, 40:43].sum() >= 8 and not flagged[:, 50:90].any()   # a blob's core survives
+    horizontal_step = np.full((50, 50), 1.5, np.float32)
+    horizontal_step[25:] = 3.0
+    assert not paper_flying_pixels(horizontal_step, 'horizontal').any()
+    assert paper_flying_pixels(horizontal_step, 'all')[24:26].all()
+    with pytest.raises(ValueError):
+        paper_flying_pixels(z, 'diagonal')
+
+
+def test_our_filter_removes_mixed_pixels_and_speckle_but_keeps_edges():
+    z, flying = _step_scene(np.random.default_rng(0))
+    flagged = flying_pixels(z, 500.0)
+    assert flagged[flying].mean() > 0.97
+    assert flagged[40:43, 40:43].all(), 'speckle blob kept'
+    edges = np.zeros(z.shape, bool)
+    edges[2:-2, [99, 101]] = True
+    assert flagged[edges].mean() < 0.1, 'true boundary pixels removed'
+    interior = np.zeros(z.shape, bool)
+    interior[5:-5, 5:95] = True
+    interior[35:48, 35:48] = False
+    assert flagged[interior].mean() < 0.005
+    with pytest.raises(ValueError):
+        flying_pixels(z, 500.0, FlyingPixelConfig(min_axes=5))
+
+
+def _room(rng, shape=(120, 160)):
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    wall = np.stack([120 + 40 * np.sin(xx / 9.0), 110 + 30 * np.cos(yy / 7.0), 100 + 0 * xx], axis=2)
+    return lambda: np.clip(wall + rng.normal(0, 2, wall.shape), 0, 255).astype(np.uint8)
+
+
+def test_clean_plate_mask_separates_subject_and_ignores_shadow():
+    rng = np.random.default_rng(3)
+    frame = _room(rng)
+    model = BackgroundModel()
+    for _ in range(3):
+        model.add(frame())
+    img = frame()
+    subject = np.zeros(img.shape[:2], bool)
+    subject[30:100, 60:100] = True
+    img[subject] = (200, 40, 40)
+    img[30:100, 100:130] = (img[30:100, 100:130] * 0.7).astype(np.uint8)   # its shadow on the wall
+    mask = foreground_mask(img, None, model, MaskConfig())
+    iou = (mask & subject).sum() / (mask | subject).sum()
+    assert iou > 0.97
+    assert not mask[30:100, 102:130].any(), 'shadow taken for foreground'
+
+
+def test_depth_joins_colour_misses_that_touch_the_subject():
+    rng = np.random.default_rng(4)
+    frame = _room(rng)
+    model = BackgroundModel()
+    bg_depth = np.full((120, 160), 3.0, np.float32)
+    model.add(frame(), bg_depth)
+    img = frame()
+    img[20:60, 60:100] = (220, 200, 30)        # coloured top part
+    depth = bg_depth.copy()
+    depth[20:110, 60:100] = 1.5                 # whole subject in depth; its lower part is wall-coloured
+    mask = foreground_mask(img, depth, model, MaskConfig(max_range=4.0))
+    assert mask[20:110, 62:98].mean() > 0.98
+    assert mask.sum() < 1.1 * 90 * 40
+
+
+def test_chroma_key():
+    img = np.zeros((80, 80, 3), np.uint8)
+    img[:] = (0, 177, 64)
+    img[20:60, 30:50] = (180, 150, 120)
+    mask = chroma_key_mask(img)
+    assert mask[20:60, 30:50].all() and mask.sum() == 40 * 20
+
+
+def test_background_model_round_trip(tmp_path):
+    m = BackgroundModel()
+    with pytest.raises(ValueError):
+        m.save(str(tmp_path / 'bg.npz'))
+    m.add(np.full((4, 5, 3), 10, np.uint8), np.ones((2, 2), np.float32))
+    m.save(str(tmp_path / 'bg.npz'))
+    loaded = BackgroundModel.load(str(tmp_path / 'bg.npz'))
+    assert loaded.frames == 1 and loaded.depth.shape == (2, 2)
+    with pytest.raises(ValueError, match='clean-plate frame'):
+        m.add(np.zeros((3, 3, 3), np.uint8))
+
+
+def test_cleaner_rejects_bad_frames(k4a):
+    cleaner = DepthCleaner(DepthRegistration(k4a.depth, k4a.color, k4a.T_color_depth))
+    color = np.zeros((720, 1280, 3), np.uint8)
+    with pytest.raises(ValueError, match='no valid pixel'):
+        cleaner.process(color, np.full((576, 640), np.nan, np.float32))
+    with pytest.raises(ValueError, match='colour image is'):
+        cleaner.process(np.zeros((10, 10, 3), np.uint8), np.ones((576, 640), np.float32))
+    assert np.array_equal(sanitise_depth(np.array([np.nan, np.inf, -1, 2.0])), [0, 0, 0, 2.0])
+    with pytest.raises(ValueError):
+        DepthCleaner(cleaner.registration, DepthFilterConfig(mask_mode='magic'))
+
+
+def test_cleaner_on_a_studio_frame_gives_points_and_temporal_state(studio_bag):
+    from volcap_core.frames import frame_sets
+    from volcap_studio.session import GroundTruth
+    rig = GroundTruth(studio_bag).rig
+    cleaner = None
+    for fs in frame_sets(studio_bag, phases=('clean_plate', 'capture')):
+        f = fs.cameras['cam2']
+        if cleaner is None:
+            cleaner = DepthCleaner(DepthRegistration(f.depth_model, f.color_model, rig.camera('cam2').T_color_depth),
+                                   DepthFilterConfig(temporal_alpha=0.5, sor_neighbors=16))
+        if fs.phase == 'clean_plate':
+            cleaner.learn_background(f.color, f.depth)
+            continue
+        result = cleaner.process(f.color, f.depth)
+    xyz, rgb = cleaner.points(result)
+    assert result.depth.shape == (360, 640) and result.mask.shape == (720, 1280)
+    assert len(xyz) > 2000 and rgb.dtype == np.uint8 and xyz.shape == rgb.shape
+    assert np.all((xyz[:, 2] > 0.1) & (xyz[:, 2] < 2.5))
+
+
+
+
+
+
+
+

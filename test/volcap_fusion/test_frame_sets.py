@@ -1,0 +1,50 @@
+"""The fusion node's frame-set step without ROS: complete, incomplete and empty frame sets,
+unusable cameras and the min_cameras policy."""
+import numpy as np
+
+from volcap_core import topics
+from volcap_core.camera import CameraModel
+from volcap_fusion.frame_sets import frame_set_views, fused_phase
+from volcap_fusion.tsdf import CameraView
+
+LENS = CameraModel(32, 24, 25.0, 25.0, 15.5, 11.5)
+CAMERAS = ['cam0', 'cam1', 'cam2']
+
+
+def to_view(camera, part):
+    depth_mm, rgb = part
+    return CameraView(camera, depth_mm, LENS, rgb, LENS, np.eye(4))
+
+
+def good():
+    return np.full((24, 32), 1500, np.uint16), np.zeros((24, 32, 3), np.uint8)
+
+
+def test_a_complete_frame_set_gives_every_view():
+    plan = frame_set_views(7, CAMERAS, {c: good() for c in CAMERAS}, to_view, min_cameras=1)
+    assert [v.name for v in plan.views] == CAMERAS and plan.missing == [] and not plan.skipped
+
+
+def test_missing_and_unusable_cameras_are_left_out_and_named():
+    depth, rgb = good()
+    parts = {'cam0': (depth, rgb), 'cam2': (depth[:, :10], rgb)}     # cam1 absent, cam2 mis-sized
+    plan = frame_set_views(7, CAMERAS, parts, to_view, min_cameras=1)
+    assert [v.name for v in plan.views] == ['cam0']
+    assert plan.missing == ['cam1', 'cam2'] and 'camera_info says' in plan.problems['cam2']
+    assert not plan.skipped
+
+
+def test_fewer_than_min_cameras_skips_the_set():
+    plan = frame_set_views(7, CAMERAS, {'cam1': good()}, to_view, min_cameras=2)
+    assert plan.skipped == 'frame set 7 skipped: 1 of 3 cameras (missing cam0, cam2)'
+
+
+def test_an_empty_frame_set_is_skipped():
+    plan = frame_set_views(7, CAMERAS, {}, to_view, min_cameras=1)
+    assert plan.views == [] and plan.missing == CAMERAS and plan.skipped.startswith('frame set 7 skipped: 0 of 3')
+
+
+def test_phase_filter():
+    phases = (topics.CAPTURE,)
+    assert fused_phase(None, phases) and fused_phase(topics.CAPTURE, phases)
+    assert not fused_phase(topics.CLEAN_PLATE, phases) and fused_phase(topics.CLEAN_PLATE, ())
