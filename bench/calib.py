@@ -14,8 +14,8 @@ import cv2
 
 from volcap_calib.board import BoardConfig, reference_srgb8
 from volcap_calib.calibrate import CalibrationConfig, Calibrator, CameraFrame
-from volcap_calib.chart import find_colour_checker
-from volcap_calib.colour import fit_camera_colour
+from volcap_calib.chart import find_color_checker
+from volcap_calib.color import fit_camera_color
 from volcap_calib.extrinsics import sed_baseline
 from volcap_core.bag_io import BagReader
 from volcap_core.frames import frame_sets, read_rig
@@ -54,7 +54,7 @@ def main(bag: str) -> None:
     t0 = time.perf_counter()
     illumination = calibrator.illumination()
     for c in rig.names:
-        fit_camera_colour(*calibrator.colour_samples(c, illumination))
+        fit_camera_color(*calibrator.color_samples(c, illumination))
     print(f'  of the solve, colour (illumination, 6 models x leave-one-patch-out, Lab refinement, 8 cameras): '
           f'{time.perf_counter() - t0:5.1f} s')
     charts = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'colorchecker'
@@ -67,7 +67,7 @@ def main(bag: str) -> None:
                          cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
         t_pass = time.perf_counter() - t0
         t0 = time.perf_counter()
-        find_colour_checker(image, reference)
+        find_color_checker(image, reference)
         t_find = time.perf_counter() - t0
         print(f'ColorChecker finder, {photo.name} ({image.shape[1]}x{image.shape[0]}): {t_find * 1000:6.1f} ms '
               f'({t_find / t_pass:.0f}x one bare threshold + contours pass, {t_pass * 1000:.1f} ms)')

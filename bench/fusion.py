@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from colour_stage import median_ms
+from color_stage import median_ms
 
 from volcap_core import transport
 from volcap_core.bag_io import BagReader

@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from colour_stage import median_ms  # bench/ is on the path when run as a script
+from color_stage import median_ms  # bench/ is on the path when run as a script
 
-from volcap_calib.colour import ColourModel
 from volcap_color.apply import ImageCorrector, RegionLut
-from volcap_color.neural import CaptureMapper, ColourField, load_harmonisation, use_bf16
+from volcap_color.neural import CaptureMapper, ColorField, load_harmonisation, use_bf16
 from volcap_core import transport
+from volcap_core.color import ColorModel
 
 
 def bare_step_ms(model, inputs, target, bf16: bool) -> float:
@@ -75,7 +75,7 @@ def main() -> int:
     field = manifest['field']
     e_step = field['seconds'] / field['steps'] * 1e3
     n = cfg.field_batch
-    bare_e = ColourField(np.zeros(3), np.ones(3), np.zeros(3), np.ones(3), cfg.field_width, cfg.point_frequencies,
+    bare_e = ColorField(np.zeros(3), np.ones(3), np.zeros(3), np.ones(3), cfg.field_width, cfg.point_frequencies,
                          cfg.camera_frequencies)
     e_bare = bare_step_ms(bare_e, (torch.rand(n, 3), torch.rand(n, 3)), torch.rand(n, 3), bf16)
     conv = converged_epoch(field['losses'])
@@ -108,11 +108,11 @@ def main() -> int:
     live = ImageCorrector(lut)
     out = live(image)
     live_ms = median_ms(lambda: live(image, out), repeat=30)
-    plain = ImageCorrector(ColourModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])))
+    plain = ImageCorrector(ColorModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])))
     plain_ms = median_ms(lambda: plain(image, out), repeat=30)
     ys, xs = np.mgrid[0:720, 0:1280]
     xy = np.stack([(xs.reshape(-1) + 0.5) / 1280, (ys.reshape(-1) + 0.5) / 720], axis=1)
-    net_ms = median_ms(lambda: harm.map_colours(cam, image.reshape(-1, 3) / 255.0, xy), repeat=3)
+    net_ms = median_ms(lambda: harm.map_colors(cam, image.reshape(-1, 3) / 255.0, xy), repeat=3)
     n_nodes, (nx, ny) = lut.table.shape[0], lut.grid
     result['live'] = {'region_lut_ms': live_ms, 'plain_3d_lut_ms': plain_ms, 'torch_network_ms': net_ms,
                       'lut': f'{n_nodes}^3 x {nx}x{ny}', 'export_error': manifest.get('export_error', {}).get(cam)}

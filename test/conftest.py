@@ -11,6 +11,14 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / 'shared' / 'data'
+# Rendering or training these takes tens of seconds on 2 cores: tests that use them are `slow`.
+SLOW_FIXTURES = {'studio_bag', 'calib_bag', 'calib_bag_blind_camera', 'k4a_bag', 'capture_bag', 'trained', 'install'}
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if SLOW_FIXTURES & set(getattr(item, 'fixturenames', ())):
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope='session')
@@ -56,9 +64,9 @@ def gt_calibration():
     for every camera)."""
     from volcap_core.calibration import Calibration, CameraCalibration
 
-    def make(gt, colour: dict | None = None) -> Calibration:
+    def make(gt, color: dict | None = None) -> Calibration:
         return Calibration(gt.rig.names[0], f'{gt.rig.names[0]}_color_optical_frame',
-                           {c: CameraCalibration(gt.T_world_color(c), f'{c}_color_optical_frame', colour=colour)
+                           {c: CameraCalibration(gt.T_world_color(c), f'{c}_color_optical_frame', color=color)
                             for c in gt.rig.names})
     return make
 

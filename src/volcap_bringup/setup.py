@@ -23,8 +23,9 @@ setup(
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={
+        # The volcap command line; installed to bin/ (setup.cfg), which colcon puts on PATH.
         'console_scripts': [
-
+            'volcap = volcap_bringup.cli:main',
         ],
     },
 )

@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import cv2
+import pytest
 
 
 def volcap(*args):
@@ -17,6 +18,7 @@ def test_import_of_a_file_that_is_not_a_k4a_recording(tmp_path, shared_data):
     assert not (tmp_path / 'x').exists()
 
 
+@pytest.mark.slow
 def test_synth_rejects_bad_options(tmp_path):
     run = volcap('synth', '--out', tmp_path / 'x', '--cameras', '0')
     assert run.returncode == 2 and 'at least one camera' in run.stderr
@@ -24,6 +26,7 @@ def test_synth_rejects_bad_options(tmp_path):
     assert run.returncode == 2 and 'does not exist' in run.stderr
 
 
+@pytest.mark.slow
 def test_synth_info_and_preview(tmp_path, shared_data):
     run = volcap('synth', '--out', tmp_path / 's', '--cameras', '2', '--frames', '1', '--board-poses', '0',
                  '--background-frames', '1', '--quiet')

@@ -18,7 +18,7 @@ def test_every_node_parameter_is_documented():
     classes = {spec for block in listed for spec in block.split()}
     for spec in ('volcap_filter.session:DepthFilterNodeConfig', 'volcap_filter.pipeline:DepthFilterConfig',
                  'volcap_fusion.frame_sets:FusionNodeConfig', 'volcap_fusion.tsdf:FusionConfig',
-                 'volcap_calib.calibration_service_node:CalibrationServiceConfig',
+                 'volcap_calib.session:CalibrationServiceConfig',
                  'volcap_color.color_corrector_node:ColorCorrectorConfig', 'volcap_driver.playback:BagPlayerConfig'):
         assert spec in classes, f'{spec} has no parameter table in docs/'
 

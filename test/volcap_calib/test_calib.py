@@ -10,15 +10,8 @@ import yaml
 
 from volcap_calib.board import BoardConfig, reference_srgb8, write_board
 from volcap_calib.calibrate import CalibrationConfig
-from volcap_calib.chart import ChartNotFound, find_colour_checker
-from volcap_calib.colour import (
-    ColourModel,
-    component_differences,
-    delta_e2000,
-    fit_camera_colour,
-    fit_model,
-    srgb_to_linear,
-)
+from volcap_calib.chart import ChartNotFound, find_color_checker
+from volcap_calib.color import component_differences, fit_camera_color, fit_model
 from volcap_calib.detect import BoardDetector, Detection, DetectionError, detect_chessboard
 from volcap_calib.extrinsics import (
     CalibrationError,
@@ -32,6 +25,7 @@ from volcap_calib.extrinsics import (
 )
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.camera import CameraModel
+from volcap_core.color import ColorModel, delta_e2000, srgb_to_linear
 from volcap_core.poses import invert, look_at, perturb, rotation_angle_deg, transform_points
 from volcap_eval.calib import pose_errors, rig_reprojection
 
@@ -156,6 +150,7 @@ def _observe(T_world_cam, models, rng, views=24, noise_px=0.3, board=BoardConfig
     return observations, T_views
 
 
+@pytest.mark.slow
 def test_joint_solver_recovers_a_ring_rig_and_beats_the_paper_baseline():
     T_true, models, rng = _ring_rig()
     obs, _ = _observe(T_true, models, rng)
@@ -171,6 +166,7 @@ def test_joint_solver_recovers_a_ring_rig_and_beats_the_paper_baseline():
     assert max(fixed.values()) < 0.5
 
 
+@pytest.mark.slow
 def test_solver_names_cameras_it_cannot_place():
     T_true, models, rng = _ring_rig()
     obs, _ = _observe(T_true, models, rng)
@@ -215,11 +211,12 @@ def _camera_response(reference, gain=(1.2, 0.9, 0.8), gamma=2.3, crosstalk=0.05)
     return np.clip(((lin * gain) @ M.T), 0, 1) ** (1 / gamma)
 
 
-def test_colour_models_fit_a_camera_response_and_leave_one_out_picks_a_matrix():
+@pytest.mark.slow
+def test_color_models_fit_a_camera_response_and_leave_one_out_picks_a_matrix():
     ref = reference_srgb8() / 255.0
     measured = _camera_response(ref)
     patch = np.arange(24)
-    fit = fit_camera_colour(measured, ref, patch)
+    fit = fit_camera_color(measured, ref, patch)
     assert fit.model.method != 'paper_diagonal'
     assert fit.de2000_after < 2.0 < fit.de2000_before
     assert fit.loo_de2000['paper_diagonal'] > min(fit.loo_de2000.values())
@@ -232,10 +229,10 @@ def test_colour_models_fit_a_camera_response_and_leave_one_out_picks_a_matrix():
     corrected = fit.model.apply_image(image)
     assert corrected.shape == image.shape and corrected.dtype == np.uint8
     assert np.abs(corrected / 255.0 - fit.model.apply(image / 255.0)).max() <= 0.5 / 255 + 1e-9
-    assert ColourModel.from_dict(fit.model.to_dict()).to_dict() == fit.model.to_dict()
+    assert ColorModel.from_dict(fit.model.to_dict()).to_dict() == fit.model.to_dict()
     # What calibration.yaml stores (ColourFit.to_dict) rebuilds the same model, exponents included.
-    gamma = fit_camera_colour(measured, ref, patch, method='gamma_3x3')
-    stored = ColourModel.from_dict(gamma.to_dict())
+    gamma = fit_camera_color(measured, ref, patch, method='gamma_3x3')
+    stored = ColorModel.from_dict(gamma.to_dict())
     assert stored.exponents == gamma.model.exponents
     assert np.allclose(stored.apply(measured), gamma.model.apply(measured))
     # The CIELAB refinement does not lose to the linear-RGB least squares it starts from.
@@ -245,7 +242,7 @@ def test_colour_models_fit_a_camera_response_and_leave_one_out_picks_a_matrix():
         assert delta_e2000(refined.apply(measured), ref).mean() < delta_e2000(linear_only.apply(measured), ref).mean()
 
 
-def test_colour_fit_refuses_bad_samples():
+def test_color_fit_refuses_bad_samples():
     ref = reference_srgb8() / 255.0
     bad = ref.copy()
     bad[3, 1] = np.nan
@@ -267,19 +264,19 @@ def test_table1_differences_are_reference_minus_camera():
 # --- whole calibration on a rendered session ------------------------------------------------
 
 def test_calibrator_on_a_rendered_session(calib_bag):
-    from volcap_bringup.calib_cli import calibrator_from_bag
+    from volcap_calib.run import calibrator_from_bag
     from volcap_studio.session import GroundTruth
     gt = GroundTruth(calib_bag)
     calibrator = calibrator_from_bag(calib_bag, BoardConfig.from_yaml(), CalibrationConfig(), progress=False)
     outcome = calibrator.solve()
     err = pose_errors(outcome.extrinsics.T_world_color, {c: gt.T_world_color(c) for c in gt.rig.names}, 'cam0')
     assert err['cam1']['rot_err_deg'] < 0.2 and err['cam1']['trans_err_mm'] < 5.0
-    for c, fit in outcome.colour.items():
+    for c, fit in outcome.color.items():
         assert fit.de2000_after < fit.de2000_before / 2
     text = outcome.calibration.to_yaml()
     again = Calibration.from_yaml(text)
     assert np.allclose(again.T_world_color('cam1'), outcome.extrinsics.T_world_color['cam1'])
-    assert again.cameras['cam0'].colour['method'] in outcome.colour['cam0'].loo_de2000
+    assert again.cameras['cam0'].color['method'] in outcome.color['cam0'].loo_de2000
 
 
 def test_calibration_file_is_versioned_and_validated(tmp_path):
@@ -296,6 +293,7 @@ def test_calibration_file_is_versioned_and_validated(tmp_path):
         cal.T_world_color('cam9')
 
 
+@pytest.mark.slow
 def test_board_prints_at_true_scale(tmp_path):
     board = BoardConfig.from_yaml()
     png = write_board(tmp_path / 'board.png', board, dpi=100)
@@ -332,15 +330,16 @@ def test_cli_calibrate_and_eval(calib_bag, calib_bag_blind_camera, tmp_path):
 
 
 @pytest.mark.parametrize('photo', ['chair_warm.png', 'passport_warm.png'])
+@pytest.mark.slow
 def test_real_colorchecker_photos_are_found_and_corrected(shared_data, photo):
     image = cv2.cvtColor(cv2.imread(str(shared_data / 'colorchecker' / photo)), cv2.COLOR_BGR2RGB)
     reference = reference_srgb8() / 255.0
-    chart = find_colour_checker(image, reference)
+    chart = find_color_checker(image, reference)
     # The neutral row runs white -> black in reference order, whatever the chart's rotation
     # (the Passport's chart is turned 90 degrees and shares the photo with another page).
-    grey = chart.colours[18:24].mean(axis=1)
+    grey = chart.colors[18:24].mean(axis=1)
     assert np.all(np.diff(grey) < 0)
-    fit = fit_camera_colour(chart.colours, reference, np.arange(24))
+    fit = fit_camera_color(chart.colors, reference, np.arange(24))
     assert fit.de2000_before > 10.0
     assert fit.de2000_after <= 3.0
     assert fit.loo_de2000[fit.model.method] <= 3.0   # also on patches the model never saw
@@ -356,15 +355,16 @@ def test_chart_finder_reads_a_turned_and_tilted_chart_exactly_and_refuses_other_
         corners, np.float32([[w * 0.1, h * 0.05], [w * 0.95, 0], [w * 0.8, h], [0, h * 0.9]])), (w, h),
         borderValue=(90, 90, 90))
     for turned in (tilted, cv2.rotate(tilted, cv2.ROTATE_90_CLOCKWISE), cv2.rotate(tilted, cv2.ROTATE_180)):
-        chart = find_colour_checker(turned, reference)
-        assert delta_e2000(chart.colours, reference).max() < 0.5
+        chart = find_color_checker(turned, reference)
+        assert delta_e2000(chart.colors, reference).max() < 0.5
     chessboard = cv2.cvtColor(cv2.imread(str(shared_data / 'stereo_chessboard' / 'left04.jpg')), cv2.COLOR_BGR2RGB)
     with pytest.raises(ChartNotFound, match='not a ColorChecker'):
-        find_colour_checker(chessboard, reference)
+        find_color_checker(chessboard, reference)
     with pytest.raises(ChartNotFound, match='square patches'):
-        find_colour_checker(np.full((200, 300, 3), 128, np.uint8), reference)
+        find_color_checker(np.full((200, 300, 3), 128, np.uint8), reference)
 
 
+@pytest.mark.slow
 def test_cli_eval_chart(shared_data, tmp_path):
     from volcap_bringup.cli import main
     photo = shared_data / 'colorchecker' / 'chair_warm.png'
@@ -380,6 +380,7 @@ def test_cli_eval_chart(shared_data, tmp_path):
     assert json.loads(out.read_text())['failed'] == [str(broken)]
 
 
+@pytest.mark.slow
 def test_icp_refinement_pulls_perturbed_cameras_onto_the_subject_and_keeps_good_ones(shared_data):
     import open3d as o3d
 

@@ -5,21 +5,21 @@ the chart-free fit and the baselines on known colour differences, and `volcap ev
 import numpy as np
 import pytest
 
-from volcap_calib.colour import ColourModel, linear_to_srgb, srgb_to_linear
 from volcap_color.apply import ImageCorrector
 from volcap_color.correspondence import Matches
 from volcap_color.methods import brown_lowe, chart_free_fit, fit_reinhard, moulon, propagate, propagation_tree
+from volcap_core.color import ColorModel, linear_to_srgb, srgb_to_linear
 
 MATRIX = np.array([[1.1, 0.05, -0.02], [0.03, 0.92, 0.01], [-0.04, 0.02, 1.2]])
 
 
 @pytest.mark.parametrize('model', [
-    ColourModel('paper_diagonal', np.diag([1.1, 0.9, 1.05])),
-    ColourModel('matrix_3x3', MATRIX),
-    ColourModel('affine_3x4', np.hstack([MATRIX, [[0.01], [-0.01], [0.0]]])),
-    ColourModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02)),
-    ColourModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02), post=np.hstack([np.eye(3) * 0.9, [[0.02], [0], [0]]])),
-    ColourModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])),
+    ColorModel('paper_diagonal', np.diag([1.1, 0.9, 1.05])),
+    ColorModel('matrix_3x3', MATRIX),
+    ColorModel('affine_3x4', np.hstack([MATRIX, [[0.01], [-0.01], [0.0]]])),
+    ColorModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02)),
+    ColorModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02), post=np.hstack([np.eye(3) * 0.9, [[0.02], [0], [0]]])),
+    ColorModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])),
 ], ids=lambda m: m.method + ('+post' if m.post is not None else ''))
 def test_compiled_corrector_matches_the_exact_model(model):
     rng = np.random.default_rng(0)
@@ -34,15 +34,15 @@ def test_compiled_corrector_matches_the_exact_model(model):
         corrector(image[:, :, 0])
 
 
-def test_colour_model_post_map_round_trips():
-    m = ColourModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02), post=np.hstack([np.eye(3) * 0.9, np.zeros((3, 1))]))
-    again = ColourModel.from_dict(m.to_dict())
+def test_color_model_post_map_round_trips():
+    m = ColorModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02), post=np.hstack([np.eye(3) * 0.9, np.zeros((3, 1))]))
+    again = ColorModel.from_dict(m.to_dict())
     rgb = np.random.default_rng(1).random((50, 3))
     assert np.allclose(again.apply(rgb), m.apply(rgb))
     assert np.allclose(m.apply_linear(srgb_to_linear(rgb)),
-                       0.9 * ColourModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02)).apply_linear(srgb_to_linear(rgb)))
+                       0.9 * ColorModel('gamma_3x3', MATRIX, (1.1, 0.95, 1.02)).apply_linear(srgb_to_linear(rgb)))
     with pytest.raises(ValueError, match='3x4'):
-        ColourModel('paper_diagonal', np.eye(3), post=np.zeros((3, 4)))
+        ColorModel('paper_diagonal', np.eye(3), post=np.zeros((3, 4)))
 
 
 
@@ -78,8 +78,8 @@ def test_chart_free_fit_makes_cameras_agree_despite_outliers():
     models = chart_free_fit(matches, cams, 'affine_3x4', 'mean')
     clean = _synthetic_matches(cams, distort, seed=5)
     for (a, b), m in clean.items():
-        before = np.abs(m.colours_a - m.colours_b).mean()
-        after = np.abs(models[a].apply(m.colours_a) - models[b].apply(m.colours_b)).mean()
+        before = np.abs(m.colors_a - m.colors_b).mean()
+        after = np.abs(models[a].apply(m.colors_a) - models[b].apply(m.colors_b)).mean()
         assert after < 0.003 < 0.1 * before
     mean = np.mean([m.matrix for m in models.values()], axis=0)
     assert np.allclose(mean, np.hstack([np.eye(3), np.zeros((3, 1))]), atol=1e-3)

@@ -18,9 +18,9 @@ pytestmark = pytest.mark.ros
 
 def _calibration(cameras, gain):
     """Every camera with a 3x3 model that scales linear RGB by ``gain``."""
-    colour = {'method': 'matrix_3x3', 'matrix': (np.eye(3) * gain).tolist()}
+    color = {'method': 'matrix_3x3', 'matrix': (np.eye(3) * gain).tolist()}
     return Calibration('cam0', 'cam0_color_optical_frame',
-                       {c: CameraCalibration(np.eye(4), f'{c}_color_optical_frame', colour=colour) for c in cameras})
+                       {c: CameraCalibration(np.eye(4), f'{c}_color_optical_frame', color=color) for c in cameras})
 
 
 def test_every_camera_of_a_replayed_bag_is_corrected(studio_bag, ros_context, procs, play, probe_factory):

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from volcap_calib.colour import linear_to_srgb
 from volcap_color.apply import ImageCorrector, RegionLut
 from volcap_color.correspondence import View, match_pair
 from volcap_color.neural import CaptureMapper, bake_region_lut, export_error, harmonise, load_harmonisation, train
 from volcap_color.neural_config import HarmoniseConfig
 from volcap_core.camera import CameraModel
+from volcap_core.color import linear_to_srgb
 from volcap_core.poses import look_at
 
 RADIUS = 0.3
@@ -55,7 +55,7 @@ def _sets(frames=2):
 TINY = HarmoniseConfig(points=30_000, field_epochs=60, field_batch=1000, field_lr=2e-3, field_width=64,
                        point_frequencies=6, camera_frequencies=2, mapper_points=1500, mapper_epochs=60,
                        mapper_batch=100, mapper_lr=2e-3, mapper_width=64, mapper_layers=4, reference='cam0',
-                       lut_colours=17, lut_grid=(5, 4), precision='fp32', device='cpu')
+                       lut_colors=17, lut_grid=(5, 4), precision='fp32', device='cpu')
 
 
 @pytest.fixture(scope='module')
@@ -83,8 +83,8 @@ def test_training_lowers_the_loss_and_d_reproduces_e_on_held_out_pixels(trained)
         assert len(m) > 200
         xy_a = (m.pixels_a + 0.5) / (va.camera.width, va.camera.height)
         xy_b = (m.pixels_b + 0.5) / (vb.camera.width, vb.camera.height)
-        raw = np.abs(m.colours_a - m.colours_b).mean()
-        mapped = np.abs(harm.map_colours(va.name, m.colours_a, xy_a) - harm.map_colours(vb.name, m.colours_b, xy_b))
+        raw = np.abs(m.colors_a - m.colors_b).mean()
+        mapped = np.abs(harm.map_colors(va.name, m.colors_a, xy_a) - harm.map_colors(vb.name, m.colors_b, xy_b))
         assert mapped.mean() < 0.3 * raw, (va.name, vb.name, mapped.mean(), raw)
 
 

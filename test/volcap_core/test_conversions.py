@@ -84,7 +84,7 @@ def test_image_errors_are_clear():
         numpy_to_image(sample('rgb8'), 'rgba8')
 
 
-def test_colour_and_depth_helpers():
+def test_color_and_depth_helpers():
     rgb = sample('rgb8')
     for enc, arr in [('rgb8', rgb), ('bgr8', rgb[:, :, ::-1]),
                      ('rgba8', np.dstack([rgb, np.full(rgb.shape[:2], 9, np.uint8)])),
@@ -111,7 +111,7 @@ def test_camera_info_round_trip():
         camera_info_to_model(bad)
 
 
-def test_pointcloud_round_trip_with_colour():
+def test_pointcloud_round_trip_with_color():
     xyz = RNG.normal(size=(100, 3)).astype(np.float32)
     rgb = RNG.integers(0, 256, (100, 3), dtype=np.uint8)
     msg = through_cdr(points_to_pointcloud2(xyz, rgb, 7, 'world'))
@@ -119,8 +119,8 @@ def test_pointcloud_round_trip_with_colour():
     assert msg.fields[3].datatype == PointField.FLOAT32
     got_xyz, got_rgb = pointcloud2_to_points(msg)
     assert np.array_equal(got_xyz, xyz) and np.array_equal(got_rgb, rgb)
-    no_colour, none = pointcloud2_to_points(points_to_pointcloud2(xyz))
-    assert none is None and np.array_equal(no_colour, xyz)
+    no_color, none = pointcloud2_to_points(points_to_pointcloud2(xyz))
+    assert none is None and np.array_equal(no_color, xyz)
 
 
 def test_pointcloud_padded_fields_and_nans():

@@ -2,12 +2,13 @@
 import json
 
 import numpy as np
+import pytest
 
 from volcap_bringup.cli import main
-from volcap_calib.colour import ColourModel
 from volcap_color.apply import ImageCorrector
 from volcap_color.correspondence import View, match_pair
 from volcap_core.calibration import Calibration
+from volcap_core.color import ColorModel
 from volcap_eval.color import METHODS, capture_views
 from volcap_filter.registration import DepthRegistration
 from volcap_studio.session import GroundTruth
@@ -43,11 +44,11 @@ def test_correspondences_agree_with_ground_truth(studio_bag, gt_calibration):
             expected = b.camera.project(pts @ T[:3, :3].T + T[:3, 3])
             err = np.linalg.norm(expected - m.pixels_b[has], axis=1)
             assert (err <= 1.0).mean() >= 0.99, f'{a.name}-{b.name}: {(err <= 1.0).mean():.4f} within 1 px'
-            assert np.abs(m.colours_a - m.colours_b).mean() < 0.2    # same surface, similar colour
+            assert np.abs(m.colors_a - m.colors_b).mean() < 0.2    # same surface, similar colour
     assert scored >= 2
 
 
-def test_eval_colour_and_colour_fit_end_to_end(studio_bag, tmp_path, gt_calibration):
+def test_eval_color_and_color_fit_end_to_end(studio_bag, tmp_path, gt_calibration):
     gt = GroundTruth(studio_bag)
     calibration = tmp_path / 'calibration.yaml'
     gt_calibration(gt, {'method': 'matrix_3x3', 'matrix': np.eye(3).tolist()}).save(calibration)
@@ -71,13 +72,14 @@ def test_eval_colour_and_colour_fit_end_to_end(studio_bag, tmp_path, gt_calibrat
                  '--out', str(fitted), '--model', 'matrix_3x3', '--quiet']) == 0
     result = Calibration.load(fitted)
     for c in gt.rig.names:
-        colour = result.cameras[c].colour
-        assert colour['source'] == 'chart_free' and colour['previous']['method'] == 'matrix_3x3'
-        ImageCorrector(ColourModel.from_dict(colour))     # usable by the live corrector
+        color = result.cameras[c].color
+        assert color['source'] == 'chart_free' and color['previous']['method'] == 'matrix_3x3'
+        ImageCorrector(ColorModel.from_dict(color))     # usable by the live corrector
     assert main(['colour-fit', str(studio_bag), '--calibration', str(calibration), '--out', str(fitted),
                  '--reference', 'nobody', '--quiet']) == 2
 
 
+@pytest.mark.slow
 def test_harmonise_and_eval_neural_end_to_end(studio_bag, tmp_path, gt_calibration, capsys):
     """`volcap harmonise` on the small studio bag (trained on frame set 0, checked on 1), then the
     colour harness scores the networks and their live form beside the baselines."""

@@ -130,7 +130,7 @@ def test_clean_plate_mask_separates_subject_and_ignores_shadow():
     assert not mask[30:100, 102:130].any(), 'shadow taken for foreground'
 
 
-def test_depth_joins_colour_misses_that_touch_the_subject():
+def test_depth_joins_color_misses_that_touch_the_subject():
     rng = np.random.default_rng(4)
     frame = _room(rng)
     model = BackgroundModel()

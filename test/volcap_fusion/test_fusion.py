@@ -11,11 +11,11 @@ from volcap_fusion.sequence import SequenceWriter, glb_bytes, read_glb, read_man
 from volcap_fusion.tsdf import CameraView, FusionConfig, Rectifier, TsdfFusion, convergence_point
 
 RADIUS = 0.3
-COLOUR = (200, 120, 40)
+COLOR = (200, 120, 40)
 LENS = CameraModel(640, 360, 300.0, 300.0, 319.5, 179.5, (0.12, -0.08, 0.001, -0.001, 0.02))
 
 
-def sphere_view(name, azimuth, centre=np.zeros(3), distance=1.5, lens=LENS, colour=COLOUR, wall=None,
+def sphere_view(name, azimuth, centre=np.zeros(3), distance=1.5, lens=LENS, rgb=COLOR, wall=None,
                 aim_above=0.0):
     """A camera on a circle around the sphere, looking at it (or ``aim_above`` metres above it,
     which puts the sphere where the lens distorts more): exact depth (mm) through the lens."""
@@ -31,7 +31,7 @@ def sphere_view(name, azimuth, centre=np.zeros(3), distance=1.5, lens=LENS, colo
         t = np.where(t > 0, t, wall)
     depth = depth_to_millimetres(t)
     color = np.zeros((lens.height * 2, lens.width * 2, 3), np.uint8)
-    color[:] = colour
+    color[:] = rgb
     return CameraView(name, depth, lens, color, lens.scaled(lens.width * 2, lens.height * 2), T)
 
 
@@ -39,7 +39,7 @@ def sphere_views(count=6, **kwargs):
     return [sphere_view(f'cam{k}', 2 * np.pi * k / count, **kwargs) for k in range(count)]
 
 
-def test_fused_sphere_is_accurate_and_coloured():
+def test_fused_sphere_is_accurate_and_colored():
     model = TsdfFusion(FusionConfig(voxel_size=0.004)).fuse(sphere_views())
     radius = np.linalg.norm(model.vertices, axis=1)
     # measured: 1.14 mm mean, 3.5 mm p99 off the sphere (exact depth, 5 mm pixel footprint at
@@ -47,7 +47,7 @@ def test_fused_sphere_is_accurate_and_coloured():
     err = np.abs(radius - RADIUS)
     assert len(model.triangles) > 150_000
     assert err.mean() < 0.0013 and np.percentile(err, 99) < 0.004
-    assert np.abs(model.colors.astype(int) - COLOUR).max() <= 1
+    assert np.abs(model.colors.astype(int) - COLOR).max() <= 1
     # the ring of cameras sees the whole equator band: vertices all the way round
     azimuth = np.degrees(np.arctan2(model.vertices[:, 2], model.vertices[:, 0]))
     assert np.histogram(azimuth, bins=36, range=(-180, 180))[0].min() > 1500      # measured 2145
@@ -67,7 +67,7 @@ def test_lens_distortion_is_taken_into_account():
 
 def test_each_time_step_starts_from_an_empty_volume():
     fusion = TsdfFusion(FusionConfig(voxel_size=0.006))
-    fusion.fuse(sphere_views(centre=np.array([0.4, 0.0, 0.0]), colour=(10, 250, 10)))
+    fusion.fuse(sphere_views(centre=np.array([0.4, 0.0, 0.0]), rgb=(10, 250, 10)))
     reused = fusion.fuse(sphere_views())
     fresh = TsdfFusion(FusionConfig(voxel_size=0.006)).fuse(sphere_views())
     # the hash map hands blocks out in another order: compare the sorted vertices and colours
@@ -97,7 +97,7 @@ def test_depth_resampling_never_blends_across_a_step():
     assert np.isin(np.round(valid), (1000, 2000)).all()
 
 
-def surface_coloured_view(name, azimuth, lens=LENS, color_lens=None, aim_above=0.4):
+def surface_colored_view(name, azimuth, lens=LENS, color_lens=None, aim_above=0.4):
     """A sphere view (colour on ``color_lens``, the depth's own grid by default) whose colour
     encodes the world position each pixel sees (128 + 400 * xyz, clipped), so a misregistered
     colour shows as a wrong value."""
@@ -112,12 +112,13 @@ def surface_coloured_view(name, azimuth, lens=LENS, color_lens=None, aim_above=0
 
 
 @pytest.mark.parametrize('color_size', [(640, 360), (1280, 720)])
-def test_fused_colour_is_where_it_was_seen(color_size):
+@pytest.mark.slow
+def test_fused_color_is_where_it_was_seen(color_size):
     """Each vertex gets the colour of where it is, with colour on the depth's grid (picked in
     the depth pass) or on a finer one (remapped). Measured median 1.0, p95 2.4 levels on the
     depth's grid and 0.8, 2.0 on the finer one; the earlier fixed-point colour remap gave 1.1,
     7.8 on the depth's grid and 0.8, 2.8 on the finer one (it did not pick the nearest pixel)."""
-    views = [surface_coloured_view(f'cam{k}', k * np.pi / 3, color_lens=LENS.scaled(*color_size)) for k in range(6)]
+    views = [surface_colored_view(f'cam{k}', k * np.pi / 3, color_lens=LENS.scaled(*color_size)) for k in range(6)]
     model = TsdfFusion(FusionConfig(voxel_size=0.004)).fuse(views)
     err = np.abs(model.colors.astype(float) - np.clip(128 + 400 * model.vertices, 0, 255))
     assert np.median(err) < 1.5 and np.percentile(err, 95) < 4.0
@@ -137,8 +138,8 @@ def crop_origin(K, lens):
     return int(round(lens.cx - K[0, 2])), int(round(lens.cy - K[1, 2]))
 
 
-def test_depth_and_colour_on_one_grid_are_rectified_in_one_pass():
-    v = surface_coloured_view('cam0', 0.3)
+def test_depth_and_color_on_one_grid_are_rectified_in_one_pass():
+    v = surface_colored_view('cam0', 0.3)
     shared = Rectifier(v.depth_model, v.color_model)
     assert shared.shared_grid
     one_pass = shared(v.depth_mm, v.color)
@@ -155,9 +156,9 @@ def test_depth_and_colour_on_one_grid_are_rectified_in_one_pass():
     assert np.array_equal(one_pass.color[has_depth], expected[has_depth])
 
 
-def test_colour_on_a_finer_grid_is_remapped_to_the_nearest_pixel():
+def test_color_on_a_finer_grid_is_remapped_to_the_nearest_pixel():
     fine = LENS.scaled(1280, 720)
-    v = surface_coloured_view('cam0', 0.3, color_lens=fine)
+    v = surface_colored_view('cam0', 0.3, color_lens=fine)
     out = Rectifier(v.depth_model, v.color_model)(v.depth_mm, v.color)
     x0, y0 = crop_origin(out.color_K, fine)
     h, w = out.color.shape[:2]
@@ -233,7 +234,7 @@ def test_render_shows_the_model():
     image = render(model, views[0], width=120, height=160)
     lit = np.any(image != 32, axis=2)
     assert 0.2 < lit.mean() < 0.9
-    assert np.abs(image[lit].mean(axis=0) - np.array(COLOUR) * 0.8).max() < 60
+    assert np.abs(image[lit].mean(axis=0) - np.array(COLOR) * 0.8).max() < 60
 
 
 def test_observable_surface_excludes_what_the_sensor_drops():

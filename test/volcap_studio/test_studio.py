@@ -143,7 +143,7 @@ def test_depth_noise_flying_pixels_and_dropouts(studio_bag):
     assert abs(np.median(normalised)) < 0.05
 
 
-def test_colour_differs_between_cameras_as_in_a_studio(studio_bag):
+def test_color_differs_between_cameras_as_in_a_studio(studio_bag):
     gt = GroundTruth(studio_bag)
     responses = [gt.doc['cameras'][c]['color_response'] for c in CAMS]
     assert len({round(r['gain'], 6) for r in responses}) == 8
@@ -218,6 +218,7 @@ def _digest(path):
     return h.hexdigest()
 
 
+@pytest.mark.slow
 def test_synth_is_deterministic_for_a_seed(tmp_path, shared_data):
     cfg = dict(cameras=2, frames=1, board_poses=1, background_frames=0)
     a = synthesize(tmp_path / 'a', SynthConfig(seed=5, **cfg), progress=False)
@@ -228,6 +229,7 @@ def test_synth_is_deterministic_for_a_seed(tmp_path, shared_data):
         synthesize(tmp_path / 'a', SynthConfig(seed=5, **cfg), progress=False)
 
 
+@pytest.mark.slow
 def test_bunny_scene_and_bad_options(tmp_path, shared_data):
     s = synthesize(tmp_path / 'bunny', SynthConfig(cameras=1, frames=1, board_poses=0, background_frames=0,
                                                    scene='bunny'), progress=False)

@@ -19,7 +19,7 @@ def cmd_calibrate(args) -> int:
     from volcap_calib.extrinsics import CalibrationError
     from volcap_calib.run import CalibrateConfig, run
     cfg = CalibrateConfig(args.bag, args.out, args.report, args.board, args.reference, not args.no_depth,
-                          args.colour_method or None, args.all_frames, args.icp, args.icp_frame, not args.quiet)
+                          args.color_method or None, args.all_frames, args.icp, args.icp_frame, not args.quiet)
     try:
         report = run(cfg)
     except CalibrationError as e:
@@ -62,7 +62,7 @@ def add_parsers(sub, eval_sub) -> None:
     c.add_argument('--report', help='folder for the report JSON and PNGs (default: beside --out)')
     c.add_argument('--board', help='board YAML (default: the volcap board)')
     c.add_argument('--reference', default=None, help='camera whose colour frame is the world (default: the first)')
-    c.add_argument('--colour-method', default='', help='force a colour model instead of the leave-one-out choice')
+    c.add_argument('--color-method', '--colour-method', default='', help='force a colour model instead of the leave-one-out choice')
     c.add_argument('--no-depth', action='store_true', help='reprojection only (no depth-to-plane residuals)')
     c.add_argument('--all-frames', action='store_true', help='use every frame set, not only the calibration phase')
     c.add_argument('--icp', action='store_true',

@@ -9,8 +9,8 @@
     volcap calibrate BAG --out calibration.yaml [--icp]
     volcap eval calib calibration.yaml BAG [--json OUT.json]
     volcap eval chart PHOTO [PHOTO ...] [--json OUT.json] [--figures DIR]
-    volcap eval colour BAG --calibration calibration.yaml [--json OUT.json] [--figures DIR]
-    volcap colour-fit BAG --calibration calibration.yaml --out calibration_colour.yaml
+    volcap eval color BAG --calibration calibration.yaml [--json OUT.json] [--figures DIR]
+    volcap color-fit BAG --calibration calibration.yaml --out calibration_color.yaml
     volcap run BAG --calibration calibration.yaml --out DIR [--composed] [--voxel 0.004]
     volcap eval fusion DIR BAG [--json OUT.json]
     volcap fuse-frames FOLDER --intrinsics K.txt --out mesh.ply [--voxel 0.01]
@@ -26,7 +26,7 @@ from pathlib import Path
 
 from volcap_core import transport
 
-from . import calib_cli, colour_cli, fusion_cli
+from . import calib_cli, color_cli, fusion_cli
 
 
 def cmd_synth(args) -> int:
@@ -110,9 +110,9 @@ def cmd_demo(args) -> int:
     from volcap_core.bag_io import BagReader
     from volcap_core.calibration import Calibration
     from volcap_core.files import write_json
-    from volcap_eval.color import ColourEvalConfig
-    from volcap_eval.color import format_report as format_colour
-    from volcap_eval.color import run as evaluate_colour
+    from volcap_eval.color import ColorEvalConfig
+    from volcap_eval.color import format_report as format_color
+    from volcap_eval.color import run as evaluate_color
     from volcap_eval.fusion import evaluate_fusion
     from volcap_eval.replay import capture_views
     from volcap_studio.session import GroundTruth, synthesize
@@ -182,9 +182,9 @@ def cmd_demo(args) -> int:
 
     print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
           f'{out / "figures"}')
-    colour = evaluate_colour(bag, calibration, ColourEvalConfig(frames=4), neural=models, figures=out / "figures")
-    write_json(out / 'colour.json', colour)
-    print(format_colour(colour))
+    color = evaluate_color(bag, calibration, ColorEvalConfig(frames=4), neural=models, figures=out / "figures")
+    write_json(out / 'colour.json', color)
+    print(format_color(color))
 
     run = out / 'run'
     if run.exists():
@@ -268,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     er.set_defaults(func=cmd_eval_registration)
 
     calib_cli.add_parsers(sub, esub)
-    colour_cli.add_parsers(sub, esub)
+    color_cli.add_parsers(sub, esub)
     fusion_cli.add_parsers(sub, esub)
 
     d = sub.add_parser('demo', help='the pipeline end to end on generated data')

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-import yaml
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import Image, PointCloud2
@@ -194,7 +193,7 @@ def run_graph(cfg: RunConfig) -> dict:
 def _capture_sets(reader: BagReader, camera: str) -> int:
     """Frame sets the fusion will fuse: ``camera``'s colour images in the capture phase (all
     of them when the bag announces no phase)."""
-    changes = sorted((m.stamp_ns, (yaml.safe_load(m.decode().data) or {}).get('phase'))
+    changes = sorted((m.stamp_ns, topics.parse_phase(m.decode().data))
                      for m in reader.messages([topics.PHASE]))
     stamps = [m.stamp_ns for m in reader.messages([topics.camera_topic(camera, topics.COLOR_IMAGE)])]
     if not changes:

@@ -105,19 +105,19 @@ class BoardConfig:
 
 def reference_linear_rgb(name: str = ChartLayout.reference) -> np.ndarray:
     """(24, 3) linear sRGB (D65) of the chart's reference patches, adapted from the data's illuminant."""
-    import colour
-    chart = colour.CCS_COLOURCHECKERS[name]
+    import colour as color_science
+    chart = color_science.CCS_COLOURCHECKERS[name]
     xyY = np.array(list(chart.data.values()))
-    XYZ = colour.xyY_to_XYZ(xyY)
-    rgb = colour.XYZ_to_sRGB(XYZ, illuminant=chart.illuminant, chromatic_adaptation_transform='Bradford',
+    XYZ = color_science.xyY_to_XYZ(xyY)
+    rgb = color_science.XYZ_to_sRGB(XYZ, illuminant=chart.illuminant, chromatic_adaptation_transform='Bradford',
                              apply_cctf_encoding=False)
     return np.clip(rgb, 0.0, 1.0)
 
 
 def reference_srgb8(name: str = ChartLayout.reference) -> np.ndarray:
     """(24, 3) uint8 sRGB of the reference patches (what the board prints)."""
-    import colour
-    return np.round(colour.cctf_encoding(reference_linear_rgb(name)) * 255).astype(np.uint8)
+    import colour as color_science
+    return np.round(color_science.cctf_encoding(reference_linear_rgb(name)) * 255).astype(np.uint8)
 
 
 def write_board(path: str | Path, board: BoardConfig, dpi: int = 300) -> Path:

@@ -19,7 +19,7 @@ from volcap_core.rig import Rig
 
 from .board import BoardConfig, reference_srgb8
 from .chart import quad_mean
-from .colour import METHODS, ColourFit, fit_camera_colour, illuminated_reference, view_illumination
+from .color import METHODS, ColorFit, fit_camera_color, illuminated_reference, view_illumination
 from .detect import BoardDetector, DetectionError
 from .extrinsics import (
     CalibrationError,
@@ -46,8 +46,8 @@ class CalibrationConfig:
     reference: str | None = None         # default: the rig's first camera
     solver: SolverConfig = field(default_factory=SolverConfig)
     use_depth: bool = True
-    colour_methods: tuple[str, ...] = METHODS
-    colour_method: str | None = None     # None: the best leave-one-patch-out model
+    color_methods: tuple[str, ...] = METHODS
+    color_method: str | None = None     # None: the best leave-one-patch-out model
     min_patch_px: float = 12.0           # shortest patch side in the image to sample it
     patch_inner: float = 0.6             # fraction of the patch (per side) that is averaged
     max_chart_angle_deg: float = 70.0    # chart seen more obliquely than this is not sampled
@@ -57,11 +57,11 @@ class CalibrationConfig:
 class CalibrationOutcome:
     calibration: Calibration
     extrinsics: ExtrinsicResult
-    colour: dict[str, ColourFit]
-    colour_errors: dict[str, str]
+    color: dict[str, ColorFit]
+    color_errors: dict[str, str]
 
 
-def patch_colours(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray, board: BoardConfig,
+def patch_colors(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray, board: BoardConfig,
                   inner: float = 0.6, min_side_px: float = 12.0, max_angle_deg: float = 70.0
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(24, 3) sRGB in [0, 1] of each chart patch, robust (inter-quartile) mean of its central
@@ -140,10 +140,10 @@ class Calibrator:
                 raise ValueError(reason)
         self.models[name] = model
         self.observations.append(obs)
-        colours, centres = patch_colours(frame.color, model, T, self.board, self.cfg.patch_inner, self.cfg.min_patch_px,
+        colors, centres = patch_colors(frame.color, model, T, self.board, self.cfg.patch_inner, self.cfg.min_patch_px,
                                 self.cfg.max_chart_angle_deg)
-        if np.isfinite(colours).all(axis=1).any():
-            self.patches[name].append((view, colours))
+        if np.isfinite(colors).all(axis=1).any():
+            self.patches[name].append((view, colors))
             self.patch_pixels[name].append(centres)
         return f'{len(detection)} corners, PnP {rms:.2f} px'
 
@@ -159,15 +159,15 @@ class Calibrator:
         centres = self.board.patch_corners().mean(axis=1)[:, :2]
         return centres - centres.mean(axis=0)
 
-    def colour_samples(self, camera: str, illumination: dict[int, np.ndarray]
+    def color_samples(self, camera: str, illumination: dict[int, np.ndarray]
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Measured (N, 3) and target (N, 3) sRGB in [0, 1] (the reference chart under each view's
         illumination) and patch numbers (N,) of every sampled patch of ``camera``."""
         reference, xy = self.reference(), self.patch_xy()
         measured, ref, patch = [], [], []
-        for view, colours in self.patches[camera]:
-            ok = np.isfinite(colours).all(axis=1)
-            measured.append(colours[ok])
+        for view, colors in self.patches[camera]:
+            ok = np.isfinite(colors).all(axis=1)
+            measured.append(colors[ok])
             ref.append(illuminated_reference(reference[ok], illumination[view], xy[ok]))
             patch.append(np.nonzero(ok)[0])
         if not measured:
@@ -183,14 +183,14 @@ class Calibrator:
             raise CalibrationError(f'cameras never saw the board ({self.views} frame sets)',
                                    {c: _why_unseen(self.rejected[c]) for c in unseen})
         extrinsics = solve_rig(self.observations, models, reference, self.cfg.solver, self.rejected)
-        fits, colour_errors = {}, {}
+        fits, color_errors = {}, {}
         illumination = self.illumination() if any(self.patches.values()) else {}
         for c in self.rig.names:
-            measured, ref, patch = self.colour_samples(c, illumination)
+            measured, ref, patch = self.color_samples(c, illumination)
             if len(np.unique(patch)) < 12:
-                colour_errors[c] = f'chart seen on {len(np.unique(patch))} of 24 patches, need 12'
+                color_errors[c] = f'chart seen on {len(np.unique(patch))} of 24 patches, need 12'
                 continue
-            fits[c] = fit_camera_colour(measured, ref, patch, self.cfg.colour_methods, self.cfg.colour_method)
+            fits[c] = fit_camera_color(measured, ref, patch, self.cfg.color_methods, self.cfg.color_method)
         cams = {}
         for c in self.rig.names:
             rep = extrinsics.cameras[c]
@@ -200,8 +200,8 @@ class Calibrator:
         calibration = Calibration(reference, self.rig.camera(reference).color_frame, cams, extrinsics.method,
                                   extra={'board': self.board.to_dict(), 'rig': self.rig.name,
                                          'frame_sets': self.views,
-                                         'colour_errors': colour_errors})
-        return CalibrationOutcome(calibration, extrinsics, fits, colour_errors)
+                                         'colour_errors': color_errors})
+        return CalibrationOutcome(calibration, extrinsics, fits, color_errors)
 
 
 def _why_unseen(rejected: dict[int, str]) -> str:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .colour import fit_model, srgb_to_linear
+from .color import fit_model, srgb_to_linear
 
 ROWS, COLUMNS = 4, 6
 
@@ -31,7 +31,7 @@ class ChartNotFound(RuntimeError):
 
 @dataclass
 class ChartReading:
-    colours: np.ndarray      # (24, 3) sRGB in [0, 1], reference order (dark skin first)
+    colors: np.ndarray      # (24, 3) sRGB in [0, 1], reference order (dark skin first)
     centres: np.ndarray      # (24, 2) patch centres in the image (x, y)
     homography: np.ndarray   # (3, 3) chart lattice (column, row) -> image pixels
     candidates: int          # patch candidates on the chart's lattice
@@ -160,7 +160,7 @@ def sample_cells(image: np.ndarray, H: np.ndarray, cells: np.ndarray, inner: flo
     return out
 
 
-def find_colour_checker(image: np.ndarray, reference: np.ndarray, min_patches: int = 12,
+def find_color_checker(image: np.ndarray, reference: np.ndarray, min_patches: int = 12,
                         max_residual: float = 0.1) -> ChartReading:
     """Locate a ColorChecker Classic in an RGB uint8 ``image``; ``reference`` is the (24, 3) sRGB
     [0, 1] chart reference in patch order, used to tell the chart's orientation and to refuse a
@@ -209,13 +209,13 @@ def find_colour_checker(image: np.ndarray, reference: np.ndarray, min_patches: i
         members = sorted(members)
         H, _ = cv2.findHomography(grid[members].astype(np.float64), centres[members], 0)
         for cells in _orientations(*window):
-            colours = sample_cells(image, H, cells)
-            if not np.isfinite(colours).all():
+            colors = sample_cells(image, H, cells)
+            if not np.isfinite(colors).all():
                 continue
-            fitted = fit_model('matrix_3x3', colours, reference, perceptual=False).apply(colours)
+            fitted = fit_model('matrix_3x3', colors, reference, perceptual=False).apply(colors)
             residual = float(np.sqrt(np.mean((srgb_to_linear(fitted) - target) ** 2)))
             centres_px = cv2.perspectiveTransform(cells[None].astype(np.float64), H)[0]
-            readings.append(ChartReading(colours, centres_px, H, len(members), residual))
+            readings.append(ChartReading(colors, centres_px, H, len(members), residual))
     if not readings:
         raise ChartNotFound('the only 4 x 6 patch lattice runs off the image')
     best = min(readings, key=lambda r: r.orientation_residual)

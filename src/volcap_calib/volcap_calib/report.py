@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from volcap_core.calibration import Calibration
-from volcap_core.color import ColourModel, delta_e2000
+from volcap_core.color import ColorModel, delta_e2000
 from volcap_core.figures import save_figure
 
 from .calibrate import Calibrator
-from .colour import component_differences
+from .color import component_differences
 
 
 def poses_figure(path: str | Path, T_world_color: dict[str, np.ndarray], T_world_target: dict[int, np.ndarray],
@@ -49,27 +49,27 @@ def poses_figure(path: str | Path, T_world_color: dict[str, np.ndarray], T_world
     return out
 
 
-def colour_figure(path: str | Path, colour: dict[str, dict]) -> Path:
+def color_figure(path: str | Path, color: dict[str, dict]) -> Path:
     """Per camera: mean |R|, |G|, |B|, |I| difference to the reference and patch CIEDE2000,
     before and after correction."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    names = list(colour)
+    names = list(color)
     x = np.arange(len(names))
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
     width = 0.2
     for k, (ch, col) in enumerate(zip('RGBI', ('tab:red', 'tab:green', 'tab:blue', 'grey'))):
-        axes[0].bar(x + (k - 1.5) * width, [colour[c]['before_abs'][ch] for c in names], width, color=col, alpha=0.35)
-        axes[0].bar(x + (k - 1.5) * width, [colour[c]['after_abs'][ch] for c in names], width, color=col,
+        axes[0].bar(x + (k - 1.5) * width, [color[c]['before_abs'][ch] for c in names], width, color=col, alpha=0.35)
+        axes[0].bar(x + (k - 1.5) * width, [color[c]['after_abs'][ch] for c in names], width, color=col,
                     label=f'|{ch}|')
     axes[0].set_title('mean |difference| to the chart (8-bit levels); light: before, dark: after')
-    axes[1].bar(x - 0.2, [colour[c]['patch_de2000_before'] for c in names], 0.4, label='before', color='grey')
-    axes[1].bar(x + 0.2, [colour[c]['patch_de2000_after'] for c in names], 0.4, label='after', color='tab:green')
+    axes[1].bar(x - 0.2, [color[c]['patch_de2000_before'] for c in names], 0.4, label='before', color='grey')
+    axes[1].bar(x + 0.2, [color[c]['patch_de2000_after'] for c in names], 0.4, label='after', color='tab:green')
     axes[1].axhline(2.0, ls='--', color='k', lw=0.8)
     axes[1].set_title('mean CIEDE2000 on the 24 patches')
     for ax in axes:
-        ax.set_xticks(x, [f'{c}\n{colour[c]["method"]}' for c in names], fontsize=7)
+        ax.set_xticks(x, [f'{c}\n{color[c]["method"]}' for c in names], fontsize=7)
         ax.legend(fontsize=8)
         ax.grid(axis='y', alpha=0.3)
     out = save_figure(fig, path)
@@ -109,33 +109,33 @@ def chart_figure(path: str | Path, image: np.ndarray, centres: np.ndarray, measu
     return out
 
 
-def colour_report(calibration: Calibration, calibrator: Calibrator) -> dict:
+def color_report(calibration: Calibration, calibrator: Calibrator) -> dict:
     """Per camera: paper Table 1 differences (signed as published, and absolute) before and after
     the calibration's colour model, and mean CIEDE2000 on the patches; plus the averages."""
     illumination = calibrator.illumination()
     out = {}
     for c, cam in calibration.cameras.items():
-        measured, target, _ = calibrator.colour_samples(c, illumination)
-        if cam.colour is None or not len(measured):
+        measured, target, _ = calibrator.color_samples(c, illumination)
+        if cam.color is None or not len(measured):
             continue
-        corrected = ColourModel.from_dict(cam.colour).apply(measured)
+        corrected = ColorModel.from_dict(cam.color).apply(measured)
         before, after = component_differences(measured, target), component_differences(corrected, target)
-        out[c] = {'method': cam.colour['method'], 'before': before['signed'], 'after': after['signed'],
+        out[c] = {'method': cam.color['method'], 'before': before['signed'], 'after': after['signed'],
                   'before_abs': before['abs'], 'after_abs': after['abs'],
                   'patch_de2000_before': float(delta_e2000(measured, target).mean()),
                   'patch_de2000_after': float(delta_e2000(corrected, target).mean()), 'samples': len(measured)}
     return out
 
 
-def colour_summary(colour: dict) -> dict:
+def color_summary(color: dict) -> dict:
     """Averages over cameras, as the paper's Table 1 'Average' column."""
-    if not colour:
+    if not color:
         return {}
     keys = ('R', 'G', 'B', 'I')
-    avg = {part: {k: float(np.mean([v[part][k] for v in colour.values()])) for k in keys}
+    avg = {part: {k: float(np.mean([v[part][k] for v in color.values()])) for k in keys}
            for part in ('before', 'after', 'before_abs', 'after_abs')}
     avg['abs_reduction'] = {k: avg['before_abs'][k] / max(avg['after_abs'][k], 1e-9) for k in keys}
-    avg['patch_de2000_before'] = float(np.mean([v['patch_de2000_before'] for v in colour.values()]))
-    avg['patch_de2000_after'] = float(np.mean([v['patch_de2000_after'] for v in colour.values()]))
-    avg['max_patch_de2000_after'] = float(max(v['patch_de2000_after'] for v in colour.values()))
+    avg['patch_de2000_before'] = float(np.mean([v['patch_de2000_before'] for v in color.values()]))
+    avg['patch_de2000_after'] = float(np.mean([v['patch_de2000_after'] for v in color.values()]))
+    avg['max_patch_de2000_after'] = float(max(v['patch_de2000_after'] for v in color.values()))
     return avg

@@ -22,7 +22,7 @@ from .board import BoardConfig
 from .calibrate import CalibrationConfig, CalibrationOutcome, Calibrator, CameraFrame
 from .extrinsics import SolverConfig, depth_points
 from .icp import refine_with_icp
-from .report import colour_figure, colour_report, colour_summary, poses_figure
+from .report import color_figure, color_report, color_summary, poses_figure
 
 
 def load_board(path: str | Path | None) -> BoardConfig:
@@ -59,7 +59,7 @@ def chart_samples(bag: str | Path, board: BoardConfig, cameras: list[str], progr
     if not any(calibrator.patches.values()):
         return None, 'no camera saw the chart in the board views'
     illumination = calibrator.illumination()
-    return {c: calibrator.colour_samples(c, illumination)[:2] for c in cameras if calibrator.patches.get(c)}, None
+    return {c: calibrator.color_samples(c, illumination)[:2] for c in cameras if calibrator.patches.get(c)}, None
 
 
 def refine_from_bag(bag: str | Path, calibration: Calibration, frame: int) -> dict:
@@ -101,7 +101,7 @@ class CalibrateConfig:
 
     def solver_config(self) -> CalibrationConfig:
         return CalibrationConfig(reference=self.reference, use_depth=self.use_depth,
-                                 colour_method=self.color_method or None,
+                                 color_method=self.color_method or None,
                                  solver=SolverConfig(depth_weight=1.0 if self.use_depth else 0.0))
 
 
@@ -124,7 +124,7 @@ class CalibrateReport:
             col_txt = (f'  colour {col["method"]:<18} dE2000 {col["patch_de2000_before"]:5.2f} -> '
                        f'{col["patch_de2000_after"]:4.2f}') if col else '  colour -'
             out.append(f'  {c}: {rep.views:2d} views  reproj {rep.reproj_rms_px:.3f} px  depth {depth}{col_txt}')
-        for c, why in self.outcome.colour_errors.items():
+        for c, why in self.outcome.color_errors.items():
             out.append(f'  {c}: no colour model: {why}')
         if self.icp and 'skipped' in self.icp:
             out.append(f'ICP skipped: {self.icp["skipped"]}; the board solution is kept')
@@ -146,10 +146,10 @@ def run(cfg: CalibrateConfig) -> CalibrateReport:
     out = Path(cfg.out)
     calibration.save(out)
     report_dir = Path(cfg.report_dir) if cfg.report_dir else out.parent
-    color = colour_report(calibration, calibrator)
+    color = color_report(calibration, calibrator)
     report = {'calibration': str(out), 'reference': calibration.reference, 'frame_sets': calibrator.views,
               'cameras': {c: outcome.extrinsics.cameras[c].to_dict() for c in calibration.cameras},
-              'colour': color, 'colour_average': colour_summary(color), 'colour_errors': outcome.colour_errors}
+              'colour': color, 'colour_average': color_summary(color), 'colour_errors': outcome.color_errors}
     if icp is not None:
         report['icp'] = icp
     files = {'calibration': out,
@@ -158,5 +158,5 @@ def run(cfg: CalibrateConfig) -> CalibrateReport:
              'poses': poses_figure(report_dir / f'{out.stem}_poses.png', outcome.extrinsics.T_world_color,
                                    outcome.extrinsics.T_world_target, report['cameras'])}
     if color:
-        files['color'] = colour_figure(report_dir / f'{out.stem}_colour.png', color)
+        files['color'] = color_figure(report_dir / f'{out.stem}_colour.png', color)
     return CalibrateReport(calibration, outcome, len(calibrator.observations), calibrator.views, color, icp, files)

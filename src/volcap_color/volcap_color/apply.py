@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from volcap_core.color import ColourModel, linear_to_srgb, srgb_to_linear
+from volcap_core.color import ColorModel, linear_to_srgb, srgb_to_linear
 from volcap_core.files import atomic_write
 
 ENCODE_STEPS = 16384     # linear [0, 1] -> uint8 table; finer than one sRGB level everywhere
@@ -209,7 +209,7 @@ def lut_from_function(correct: Callable[[np.ndarray], np.ndarray], size: int = L
 class ImageCorrector:
     """Applies one colour model to uint8 RGB images at full rate (see the module docstring)."""
 
-    def __init__(self, model: ColourModel | RegionLut | Callable[[np.ndarray], np.ndarray], lut_size: int = LUT_SIZE):
+    def __init__(self, model: ColorModel | RegionLut | Callable[[np.ndarray], np.ndarray], lut_size: int = LUT_SIZE):
         self.model = model
         self.kind = 'lut'
         self._nodes: dict[tuple[int, int], tuple] = {}
@@ -218,10 +218,10 @@ class ImageCorrector:
             levels = np.clip(np.round(model.table), 0, 255).astype(np.int64)
             self._packed = np.ascontiguousarray(levels[..., 0] + (levels[..., 1] << FIELD_BITS)
                                                 + (levels[..., 2] << (2 * FIELD_BITS)))
-        elif isinstance(model, ColourModel) and model.method == 'paper_diagonal':
+        elif isinstance(model, ColorModel) and model.method == 'paper_diagonal':
             self.kind = 'diagonal'
             self._matrix = model.matrix.astype(np.float32)
-        elif isinstance(model, ColourModel) and model.method in ('matrix_3x3', 'affine_3x4', 'gamma_3x3'):
+        elif isinstance(model, ColorModel) and model.method in ('matrix_3x3', 'affine_3x4', 'gamma_3x3'):
             self.kind = 'linear'
             levels = srgb_to_linear(np.arange(256) / 255.0)
             exponents = np.asarray(model.exponents if model.method == 'gamma_3x3' else (1.0, 1.0, 1.0))
@@ -233,7 +233,7 @@ class ImageCorrector:
                 matrix[:, 3] += model.post[:, 3]
             self._packed, self._encode = _packed_tables(matrix, decode)
         else:
-            correct = model.apply if isinstance(model, ColourModel) else model
+            correct = model.apply if isinstance(model, ColorModel) else model
             self._lut = lut_from_function(correct, lut_size)
 
     def __call__(self, image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

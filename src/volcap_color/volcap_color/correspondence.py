@@ -74,8 +74,8 @@ class Matches:
     b: str
     pixels_a: np.ndarray     # (N, 2) int32
     pixels_b: np.ndarray     # (N, 2) float32
-    colours_a: np.ndarray    # (N, 3) float64
-    colours_b: np.ndarray    # (N, 3) float64
+    colors_a: np.ndarray    # (N, 3) float64
+    colors_b: np.ndarray    # (N, 3) float64
     fraction: float          # N over the number of pixels of a
 
     def __len__(self) -> int:
@@ -169,9 +169,9 @@ def match_pair(a: View, b: View, cfg: CorrespondenceConfig = CorrespondenceConfi
     at_b, v, u = at_b[ok], v[ok] * s, u[ok] * s
     if not len(at_b):
         return empty
-    colours_a = a.color[v, u].astype(np.float64) / 255.0
-    colours_b = sample_bilinear(b.color, at_b).astype(np.float64) / 255.0   # 8-bit, like a resampled image
-    return Matches(a.name, b.name, np.stack([u, v], 1).astype(np.int32), at_b, colours_a, colours_b,
+    colors_a = a.color[v, u].astype(np.float64) / 255.0
+    colors_b = sample_bilinear(b.color, at_b).astype(np.float64) / 255.0   # 8-bit, like a resampled image
+    return Matches(a.name, b.name, np.stack([u, v], 1).astype(np.int32), at_b, colors_a, colors_b,
                    len(at_b) * s * s / float(a.depth.size))
 
 
@@ -211,5 +211,5 @@ def merge_matches(per_set: list[dict[tuple[str, str], Matches]], min_fraction: f
         if fraction < min_fraction:
             continue
         out[p] = Matches(p[0], p[1], *(np.concatenate([getattr(m, k) for m in parts]) for k in
-                                       ('pixels_a', 'pixels_b', 'colours_a', 'colours_b')), fraction)
+                                       ('pixels_a', 'pixels_b', 'colors_a', 'colors_b')), fraction)
     return out

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from volcap_core.calibration import Calibration
-from volcap_core.color import ColourModel
+from volcap_core.color import ColorModel
 from volcap_core.settings import setting, validate
 
 from .correspondence import CorrespondenceConfig, View, cameras_in, find_correspondences, merge_matches
@@ -53,20 +53,20 @@ def run(cfg: ColorFitConfig, sets: list[list[View]], calibration: Calibration,
         raise ValueError(f'no camera pair has {cfg.fit_min_fraction:.1%} of its pixels in correspondence')
     base = None
     if cfg.reference == 'chart':
-        missing = [c for c in cameras if calibration.cameras[c].colour is None]
+        missing = [c for c in cameras if calibration.cameras[c].color is None]
         if missing:
             raise ValueError(f'reference chart needs chart colour models; {", ".join(missing)} have none')
         if anchor is None:
             raise ValueError('reference chart needs the chart samples of the board views')
-        base = {c: ColourModel.from_dict(calibration.cameras[c].colour) for c in cameras}
+        base = {c: ColorModel.from_dict(calibration.cameras[c].color) for c in cameras}
     models = chart_free_fit(matches, cameras, cfg.model, cfg.reference, base=base, anchor=anchor)
     source = 'chart_harmonised' if base else 'chart_free'
     for c, m in models.items():
-        previous = calibration.cameras[c].colour
+        previous = calibration.cameras[c].color
         entry = {**m.to_dict(), 'source': source,
                  'fit': {'bag': str(source_bag), 'model': cfg.model, 'reference': cfg.reference,
                          'pairs': sum(c in p for p in matches), 'frame_sets': len(sets)}}
         if previous is not None:
             entry['previous'] = previous     # the chart fit, with its patch errors
-        calibration.cameras[c].colour = entry
+        calibration.cameras[c].color = entry
     return ColorFitReport(calibration, source, list(models), len(matches), sum(len(m) for m in matches.values()))

@@ -19,12 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-import colour
+import colour as color_science
 import numpy as np
 from scipy.optimize import linprog
 from scipy.sparse.csgraph import shortest_path
 
-from volcap_core.color import ColourModel, srgb_to_linear
+from volcap_core.color import ColorModel, srgb_to_linear
 
 from .apply import pixel_centres
 from .correspondence import Matches
@@ -53,13 +53,13 @@ def identity(rgb: np.ndarray) -> np.ndarray:
     return np.asarray(rgb, np.float64)
 
 
-def _pair_colours(matches: dict[tuple[str, str], Matches], a: str, b: str) -> tuple[np.ndarray, np.ndarray]:
+def _pair_colors(matches: dict[tuple[str, str], Matches], a: str, b: str) -> tuple[np.ndarray, np.ndarray]:
     """Colours of a and b at their common surface points, whichever order the pair was matched in."""
     if (a, b) in matches:
         m = matches[(a, b)]
-        return m.colours_a, m.colours_b
+        return m.colors_a, m.colors_b
     m = matches[(b, a)]
-    return m.colours_b, m.colours_a
+    return m.colors_b, m.colors_a
 
 
 def _usable(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -112,7 +112,7 @@ def propagate(matches: dict[tuple[str, str], Matches], cameras: list[str],
         if p is None:
             mappings[c] = identity
             continue
-        src, dst = _pair_colours(matches, c, p)
+        src, dst = _pair_colors(matches, c, p)
         ok = _usable(src, dst)
         mappings[c] = fit(src[ok], mappings[p](dst[ok]))
     return mappings
@@ -131,7 +131,7 @@ def _to_lalphabeta(rgb: np.ndarray) -> np.ndarray:
 def _from_lalphabeta(lab: np.ndarray) -> np.ndarray:
     lms = 10.0 ** (lab @ np.linalg.inv(_LMS_TO_LAB).T)
     linear = lms @ np.linalg.inv(_RGB_TO_LMS).T
-    return colour.models.eotf_inverse_sRGB(np.clip(linear, 0.0, 1.0))
+    return color_science.models.eotf_inverse_sRGB(np.clip(linear, 0.0, 1.0))
 
 
 def fit_reinhard(source: np.ndarray, target: np.ndarray) -> Mapping:
@@ -144,19 +144,19 @@ def fit_reinhard(source: np.ndarray, target: np.ndarray) -> Mapping:
 
 def fit_vandermonde(source: np.ndarray, target: np.ndarray, degree: int = 2) -> Mapping:
     """De Marchi et al.: a polynomial of the colour (Vandermonde matrix) by least squares."""
-    ccm = colour.characterisation.matrix_colour_correction_Vandermonde(source, target, degree)
-    return lambda rgb: np.clip(colour.characterisation.apply_matrix_colour_correction_Vandermonde(rgb, ccm, degree),
+    ccm = color_science.characterisation.matrix_colour_correction_Vandermonde(source, target, degree)
+    return lambda rgb: np.clip(color_science.characterisation.apply_matrix_colour_correction_Vandermonde(rgb, ccm, degree),
                                0.0, 1.0)
 
 
 def fit_finlayson(source: np.ndarray, target: np.ndarray, degree: int = 2) -> Mapping:
     """Finlayson et al. 2015: root-polynomial regression, on linear RGB (exposure invariant there)."""
-    ccm = colour.characterisation.matrix_colour_correction_Finlayson2015(
+    ccm = color_science.characterisation.matrix_colour_correction_Finlayson2015(
         srgb_to_linear(source), srgb_to_linear(target), degree)
 
     def apply(rgb):
-        linear = colour.characterisation.apply_matrix_colour_correction_Finlayson2015(srgb_to_linear(rgb), ccm, degree)
-        return colour.models.eotf_inverse_sRGB(np.clip(linear, 0.0, 1.0))
+        linear = color_science.characterisation.apply_matrix_colour_correction_Finlayson2015(srgb_to_linear(rgb), ccm, degree)
+        return color_science.models.eotf_inverse_sRGB(np.clip(linear, 0.0, 1.0))
     return apply
 
 
@@ -177,7 +177,7 @@ def brown_lowe(matches: dict[tuple[str, str], Matches], cameras: list[str], sigm
         rows, rhs = [], []
         for (a, b), m in matches.items():
             w = np.sqrt(len(m))
-            Ia, Ib = 255.0 * m.colours_a[:, k].mean(), 255.0 * m.colours_b[:, k].mean()
+            Ia, Ib = 255.0 * m.colors_a[:, k].mean(), 255.0 * m.colors_b[:, k].mean()
             r = np.zeros(n)
             r[idx[a]], r[idx[b]] = w * Ia / sigma_n, -w * Ib / sigma_n
             rows.append(r)
@@ -207,7 +207,7 @@ def moulon(matches: dict[tuple[str, str], Matches], cameras: list[str], referenc
         # variables: gain_0..n-1, offset_0..n-1, gamma
         A = []
         for (a, b), m in matches.items():
-            qa, qb = np.quantile(m.colours_a[:, k], levels), np.quantile(m.colours_b[:, k], levels)
+            qa, qb = np.quantile(m.colors_a[:, k], levels), np.quantile(m.colors_b[:, k], levels)
             for x, y in zip(qa, qb):
                 r = np.zeros(2 * n + 1)
                 r[idx[a]], r[n + idx[a]], r[idx[b]], r[n + idx[b]] = x, 1.0, -y, -1.0
@@ -251,7 +251,7 @@ def _identity_row(model: str, channel: int) -> np.ndarray:
     return row
 
 
-def _to_colour_model(model: str, rows: list[np.ndarray], base: ColourModel | None = None) -> ColourModel:
+def _to_color_model(model: str, rows: list[np.ndarray], base: ColorModel | None = None) -> ColorModel:
     if model in ('matrix_3x3', 'affine_3x4'):
         M = np.array(rows) if model == 'affine_3x4' else np.hstack([np.array(rows), np.zeros((3, 1))])
     else:
@@ -261,15 +261,15 @@ def _to_colour_model(model: str, rows: list[np.ndarray], base: ColourModel | Non
             if model == 'gain_offset':
                 M[k, 3] = r[1]
     if base is not None:
-        return ColourModel(base.method, base.matrix, base.exponents, M)
-    return ColourModel('matrix_3x3', M[:, :3]) if model == 'matrix_3x3' else ColourModel('affine_3x4', M)
+        return ColorModel(base.method, base.matrix, base.exponents, M)
+    return ColorModel('matrix_3x3', M[:, :3]) if model == 'matrix_3x3' else ColorModel('affine_3x4', M)
 
 
 def chart_free_fit(matches: dict[tuple[str, str], Matches], cameras: list[str], model: str = 'affine_3x4',
-                   reference: str = 'mean', base: dict[str, ColourModel] | None = None,
+                   reference: str = 'mean', base: dict[str, ColorModel] | None = None,
                    anchor: dict[str, tuple[np.ndarray, np.ndarray]] | None = None, anchor_weight: float = 0.05,
                    iterations: int = 6, max_per_pair: int = 200_000, ridge: float = 1e-4,
-                   seed: int = 0) -> dict[str, ColourModel]:
+                   seed: int = 0) -> dict[str, ColorModel]:
     """Per-camera linear-RGB models making corresponding pixels agree (see the module docstring).
 
     Per output channel the unknowns of all cameras are solved at once from the normal equations
@@ -297,16 +297,16 @@ def chart_free_fit(matches: dict[tuple[str, str], Matches], cameras: list[str], 
     idx = {c: i for i, c in enumerate(cameras)}
     pairs = []
     for (a, b), m in matches.items():
-        ok = np.nonzero(_usable(m.colours_a, m.colours_b))[0]
+        ok = np.nonzero(_usable(m.colors_a, m.colors_b))[0]
         if len(ok) > max_per_pair:
             ok = rng.choice(ok, max_per_pair, replace=False)
         if len(ok):
-            pairs.append((idx[a], idx[b], linear(a, m.colours_a[ok]), linear(b, m.colours_b[ok])))
+            pairs.append((idx[a], idx[b], linear(a, m.colors_a[ok]), linear(b, m.colors_b[ok])))
     n = len(cameras)
     connected = {i for a, b, *_ in pairs for i in (a, b)}
     rows = [[_identity_row(model, k) for k in range(3)] for _ in range(n)]
     if not pairs:
-        return {c: _to_colour_model(model, rows[idx[c]], base.get(c)) for c in cameras}
+        return {c: _to_color_model(model, rows[idx[c]], base.get(c)) for c in cameras}
     charts = {idx[c]: (linear(c, anchor[c][0]), srgb_to_linear(anchor[c][1])) for c in cameras} \
         if reference == 'chart' else {}
     p = len(_identity_row(model, 0))
@@ -363,4 +363,4 @@ def chart_free_fit(matches: dict[tuple[str, str], Matches], cameras: list[str], 
             residuals.append(np.linalg.norm(ya - yb, axis=1))
         sigma = 1.4826 * np.median(np.concatenate(residuals)) + 1e-6
         weights = [1.0 / (1.0 + (r / (2.0 * sigma)) ** 2) for r in residuals]
-    return {c: _to_colour_model(model, rows[idx[c]], base.get(c)) for c in cameras}
+    return {c: _to_color_model(model, rows[idx[c]], base.get(c)) for c in cameras}

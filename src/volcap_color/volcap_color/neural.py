@@ -55,7 +55,7 @@ def positional_encoding(v: torch.Tensor, frequencies: int) -> torch.Tensor:
     return torch.cat([v, torch.sin(x), torch.cos(x)], dim=-1)
 
 
-class ColourField(nn.Module):
+class ColorField(nn.Module):
     """E: (world point, world camera centre) -> sRGB in [0, 1]."""
 
     def __init__(self, point_mean, point_std, camera_mean, camera_std, width: int = 256,
@@ -107,14 +107,14 @@ class SurfaceSamples:
     """Pixels with a surface point, from one or more views."""
     points: np.ndarray      # (N, 3) float32 world
     centres: np.ndarray     # (N, 3) float32 world position of the camera that saw it
-    colours: np.ndarray     # (N, 3) float32 sRGB [0, 1]
+    colors: np.ndarray     # (N, 3) float32 sRGB [0, 1]
     xy: np.ndarray          # (N, 2) float32 pixel centre / image size (``apply.pixel_centres``)
 
     def __len__(self) -> int:
         return len(self.points)
 
     def select(self, keep: np.ndarray) -> SurfaceSamples:
-        return SurfaceSamples(*(getattr(self, k)[keep] for k in ('points', 'centres', 'colours', 'xy')))
+        return SurfaceSamples(*(getattr(self, k)[keep] for k in ('points', 'centres', 'colors', 'xy')))
 
 
 def view_samples(view: View, count: int | None, rng: np.random.Generator) -> SurfaceSamples:
@@ -133,7 +133,7 @@ def view_samples(view: View, count: int | None, rng: np.random.Generator) -> Sur
 
 def concat_samples(parts: list[SurfaceSamples]) -> SurfaceSamples:
     return SurfaceSamples(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                            ('points', 'centres', 'colours', 'xy')))
+                            ('points', 'centres', 'colors', 'xy')))
 
 
 def training_samples(sets: list[list[View]], cameras: list[str], total: int | None, seed: int) -> SurfaceSamples:
@@ -257,7 +257,7 @@ def predict(model: nn.Module, inputs: tuple[torch.Tensor, ...], bf16: bool, chun
     return torch.cat(out) if out else torch.zeros((0, 3), device=device)
 
 
-def reference_colour(field_model: ColourField, points: torch.Tensor, centres: np.ndarray, bf16: bool
+def reference_color(field_model: ColorField, points: torch.Tensor, centres: np.ndarray, bf16: bool
                      ) -> torch.Tensor:
     """E's colour of ``points`` as seen from each of ``centres`` (one row: that camera), averaged."""
     total = torch.zeros((len(points), 3), device=points.device)
@@ -273,7 +273,7 @@ class Harmonisation:
     """What ``harmonise`` trained: E, one D per camera and the reference they map to."""
     cameras: list[str]
     centres: dict[str, np.ndarray]
-    field: ColourField
+    field: ColorField
     mappers: dict[str, CaptureMapper]
     reference: str
     config: HarmoniseConfig
@@ -285,16 +285,16 @@ class Harmonisation:
         names = self.cameras if self.reference == 'mean' else [self.reference]
         return np.stack([self.centres[c] for c in names])
 
-    def map_colours(self, camera: str, rgb: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    def map_colors(self, camera: str, rgb: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """D of ``camera`` on sRGB (N, 3) in [0, 1] at normalised pixel positions (N, 2)."""
         t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=self.device)
         return predict(self.mappers[camera], (t(rgb), t(xy)), self.bf16).cpu().numpy().astype(np.float64)
 
 
-def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> ColourField:
+def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> ColorField:
     centres = np.unique(samples.centres, axis=0)
     camera_std = np.maximum(centres.std(0), 1e-3) if len(centres) > 1 else np.ones(3, np.float32)
-    return ColourField(samples.points.mean(0), np.maximum(samples.points.std(0), 1e-3), centres.mean(0), camera_std,
+    return ColorField(samples.points.mean(0), np.maximum(samples.points.std(0), 1e-3), centres.mean(0), camera_std,
                        cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
 
 
@@ -307,19 +307,19 @@ def _with_background(views: list[View], mine: SurfaceSamples, target: torch.Tens
     empty = [(v, np.flatnonzero(v.depth.reshape(-1) <= 0)) for v in views]
     total = sum(len(idx) for _, idx in empty)
     if count <= 0 or total == 0:
-        return mine.colours, mine.xy, target
-    colours, xy = [], []
+        return mine.colors, mine.xy, target
+    colors, xy = [], []
     for v, idx in empty:
         pick = rng.choice(idx, min(len(idx), max(1, count * len(idx) // total)), replace=False)
         h, w = v.depth.shape
         y, x = np.divmod(pick, w)
-        colours.append(v.color.reshape(-1, 3)[pick].astype(np.float32) / 255.0)
+        colors.append(v.color.reshape(-1, 3)[pick].astype(np.float32) / 255.0)
         xy.append(pixel_centres(x, y, w, h))
-    colours, xy = np.concatenate(colours), np.concatenate(xy)
-    design = np.hstack([mine.colours, np.ones((len(mine), 1), np.float32)])
+    colors, xy = np.concatenate(colors), np.concatenate(xy)
+    design = np.hstack([mine.colors, np.ones((len(mine), 1), np.float32)])
     affine = np.linalg.lstsq(design, target.cpu().numpy(), rcond=None)[0]
-    aimed = np.clip(np.hstack([colours, np.ones((len(colours), 1), np.float32)]) @ affine, 0.0, 1.0)
-    return (np.concatenate([mine.colours, colours]), np.concatenate([mine.xy, xy]),
+    aimed = np.clip(np.hstack([colors, np.ones((len(colors), 1), np.float32)]) @ affine, 0.0, 1.0)
+    return (np.concatenate([mine.colors, colors]), np.concatenate([mine.xy, xy]),
             torch.cat([target, torch.as_tensor(aimed.astype(np.float32), device=target.device)]))
 
 
@@ -361,7 +361,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         field_model.load_state_dict(done['state'])
         field_result = TrainResult(**done['result'])
     else:
-        field_result = train(field_model, (t(samples.points), t(samples.centres)), t(samples.colours),
+        field_result = train(field_model, (t(samples.points), t(samples.centres)), t(samples.colors),
                              epochs=cfg.field_epochs, batch=cfg.field_batch, lr=cfg.field_lr,
                              lr_final=cfg.field_lr_final, seed=cfg.seed, bf16=bf16, label='E (colour field)',
                              checkpoint=checkpoint, settings=asdict(cfg), progress=progress)
@@ -388,7 +388,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
             mapper.load_state_dict(done['state'])
             mapper_results[cam] = TrainResult(**done['result'])
         else:
-            target = reference_colour(field_model, t(mine.points), ref_centres, bf16)
+            target = reference_color(field_model, t(mine.points), ref_centres, bf16)
             rgb, xy, target = _with_background(own, mine, target, int(cfg.background * len(mine)), rng)
             mapper_results[cam] = train(mapper, (t(rgb), t(xy)), target, epochs=cfg.mapper_epochs,
                                         batch=cfg.mapper_batch, lr=cfg.mapper_lr, lr_final=cfg.mapper_lr_final,
@@ -423,7 +423,7 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     cfg = HarmoniseConfig(**cfg_dict)
     dev = pick_device(device)
     state = torch.load(models_dir / FIELD_FILE, map_location=dev, weights_only=False)['state']
-    field_model = ColourField(state['point_mean'], state['point_std'], state['camera_mean'], state['camera_std'],
+    field_model = ColorField(state['point_mean'], state['point_std'], state['camera_mean'], state['camera_std'],
                               cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies).to(dev)
     field_model.load_state_dict(state)
     field_model.eval()
@@ -439,11 +439,11 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
 
 
 # --- the live form -------------------------------------------------------------------------------
-def bake_region_lut(harm: Harmonisation, camera: str, colours: int | None = None,
+def bake_region_lut(harm: Harmonisation, camera: str, colors: int | None = None,
                     grid: tuple[int, int] | None = None) -> RegionLut:
     """D of ``camera`` sampled on ``colours``^3 colour nodes at each of ``grid`` (nx, ny) image
     nodes: what ``color_corrector`` applies at frame rate."""
-    n = colours or harm.config.lut_colours
+    n = colors or harm.config.lut_colors
     nx, ny = grid or harm.config.lut_grid
     axis = np.linspace(0.0, 1.0, n, dtype=np.float32)
     rgb = np.stack(np.meshgrid(axis, axis, axis, indexing='ij'), axis=-1).reshape(-1, 1, 3)
@@ -451,7 +451,7 @@ def bake_region_lut(harm: Harmonisation, camera: str, colours: int | None = None
                               indexing='ij'), axis=-1).reshape(1, -1, 2)
     rgb_all = np.broadcast_to(rgb, (n ** 3, nx * ny, 3)).reshape(-1, 3)
     xy_all = np.broadcast_to(yx[..., ::-1], (n ** 3, nx * ny, 2)).reshape(-1, 2)
-    mapped = harm.map_colours(camera, rgb_all, xy_all)
+    mapped = harm.map_colors(camera, rgb_all, xy_all)
     return RegionLut((mapped * 255.0).astype(np.float32).reshape(n, n, n, ny, nx, 3))
 
 
@@ -464,21 +464,21 @@ def export_error(harm: Harmonisation, camera: str, lut: RegionLut, images: list[
         h, w = img.shape[:2]
         ys, xs = np.mgrid[0:h, 0:w]
         xy = pixel_centres(xs.reshape(-1), ys.reshape(-1), w, h)
-        net = np.round(np.clip(harm.map_colours(camera, img.reshape(-1, 3) / 255.0, xy), 0, 1) * 255.0)
+        net = np.round(np.clip(harm.map_colors(camera, img.reshape(-1, 3) / 255.0, xy), 0, 1) * 255.0)
         diffs.append(np.abs(corrector(img).reshape(-1, 3).astype(np.float64) - net).reshape(-1))
     d = np.concatenate(diffs)
     return {'mean_levels': float(d.mean()), 'p99_levels': float(np.percentile(d, 99)), 'max_levels': float(d.max()),
             'pixels': int(d.size // 3)}
 
 
-def _mapper_error(field_model: ColourField, mapper: CaptureMapper, samples: SurfaceSamples, ref_centres: np.ndarray,
+def _mapper_error(field_model: ColorField, mapper: CaptureMapper, samples: SurfaceSamples, ref_centres: np.ndarray,
                   bf16: bool) -> dict:
     """D against E's reference colour on ``samples`` (pixels D was not trained on): RMS and 99th
     percentile of the difference, in levels."""
     device = next(mapper.parameters()).device
     t = lambda a: torch.as_tensor(a, device=device)
-    target = reference_colour(field_model, t(samples.points), ref_centres, bf16)
-    d = (predict(mapper, (t(samples.colours), t(samples.xy)), bf16) - target).cpu().numpy() * 255.0
+    target = reference_color(field_model, t(samples.points), ref_centres, bf16)
+    d = (predict(mapper, (t(samples.colors), t(samples.xy)), bf16) - target).cpu().numpy() * 255.0
     return {'rms_levels': float(np.sqrt(np.mean(d ** 2))), 'p99_levels': float(np.percentile(np.abs(d), 99)),
             'pixels': len(samples)}
 

@@ -28,7 +28,7 @@ class HarmoniseConfig:
                                       'at the camera\'s affine map onto the reference (0: the paper, D sees the '
                                       'subject only)', 0.0, 4.0)
     reference: str = setting('mean', 'camera whose colours D reproduces, or mean (E averaged over every camera)')
-    lut_colours: int = setting(17, 'live form: colour nodes per axis', 2, 65)
+    lut_colors: int = setting(17, 'live form: colour nodes per axis', 2, 65)
     lut_grid: tuple[int, int] = setting((9, 5), 'live form: image nodes (x, y)', 2, 64)
     seed: int = setting(0, 'random seed', 0, 2**31 - 1)
     device: str = setting('auto', 'auto (cuda when present), cpu or cuda', choices=('auto', 'cpu', 'cuda'))

@@ -22,12 +22,12 @@ class CameraCalibration:
     reproj_rms_px: float | None = None
     depth_rms_mm: float | None = None
     views: int = 0
-    colour: dict | None = None      # {'method', 'matrix', fit errors...}; see volcap_calib.colour
+    color: dict | None = None      # {'method', 'matrix', fit errors...}: a volcap_core.color.ColorModel
 
     def to_dict(self) -> dict:
         return {'T_world_color': matrix_to_list(self.T_world_color), 'color_frame': self.color_frame,
                 'reproj_rms_px': self.reproj_rms_px, 'depth_rms_mm': self.depth_rms_mm, 'views': self.views,
-                'colour': self.colour}
+                'colour': self.color}
 
     @classmethod
     def from_dict(cls, d: dict) -> 'CameraCalibration':

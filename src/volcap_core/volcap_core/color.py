@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import colour
+import colour as color_science
 import cv2
 import numpy as np
 
@@ -19,23 +19,23 @@ METHODS = ('paper_diagonal', 'matrix_3x3', 'affine_3x4', 'root_polynomial_2', 'r
 ROOT_DEGREE = {'root_polynomial_2': 2, 'root_polynomial_3': 3}
 
 
-_D65 = colour.CCS_ILLUMINANTS['CIE 1931 2 Degree Standard Observer']['D65']
-_SRGB_TO_XYZ = colour.RGB_COLOURSPACES['sRGB'].matrix_RGB_to_XYZ
+_D65 = color_science.CCS_ILLUMINANTS['CIE 1931 2 Degree Standard Observer']['D65']
+_SRGB_TO_XYZ = color_science.RGB_COLOURSPACES['sRGB'].matrix_RGB_to_XYZ
 
 
 # The sRGB transfer functions are called directly, not through colour.cctf_*: same result, a
 # quarter of the cost inside the Lab refinement's least-squares loop.
 def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
-    return colour.models.eotf_sRGB(np.clip(rgb, 0.0, 1.0))
+    return color_science.models.eotf_sRGB(np.clip(rgb, 0.0, 1.0))
 
 
 def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
-    return colour.models.eotf_inverse_sRGB(np.clip(rgb, 0.0, 1.0))
+    return color_science.models.eotf_inverse_sRGB(np.clip(rgb, 0.0, 1.0))
 
 
 def linear_to_lab(linear: np.ndarray) -> np.ndarray:
     """CIELAB (D65) of linear sRGB values (clipped to [0, 1], as the encoded image would be)."""
-    return colour.XYZ_to_Lab(np.clip(linear, 0.0, 1.0) @ _SRGB_TO_XYZ.T, _D65)
+    return color_science.XYZ_to_Lab(np.clip(linear, 0.0, 1.0) @ _SRGB_TO_XYZ.T, _D65)
 
 
 def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
@@ -44,7 +44,7 @@ def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
 
 
 def delta_e2000(rgb_a: np.ndarray, rgb_b: np.ndarray) -> np.ndarray:
-    return colour.delta_E(srgb_to_lab(rgb_a), srgb_to_lab(rgb_b), method='CIE 2000')
+    return color_science.delta_E(srgb_to_lab(rgb_a), srgb_to_lab(rgb_b), method='CIE 2000')
 
 
 def model_features(method: str, linear: np.ndarray, exponents=None) -> np.ndarray:
@@ -55,12 +55,12 @@ def model_features(method: str, linear: np.ndarray, exponents=None) -> np.ndarra
     if method == 'affine_3x4':
         return np.concatenate([linear, np.ones(linear.shape[:-1] + (1,))], axis=-1)
     if method in ROOT_DEGREE:
-        return colour.characterisation.polynomial_expansion_Finlayson2015(linear, ROOT_DEGREE[method])
+        return color_science.characterisation.polynomial_expansion_Finlayson2015(linear, ROOT_DEGREE[method])
     raise ValueError(f'unknown colour model {method!r}; choose from {METHODS}')
 
 
 @dataclass
-class ColourModel:
+class ColorModel:
     """corrected = features(camera colour) @ matrix.T (linear RGB), or the paper's diagonal on sRGB.
 
     ``gamma_3x3`` raises each linearised channel to its own exponent first: a camera whose tone
@@ -111,7 +111,7 @@ class ColourModel:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> 'ColourModel':
+    def from_dict(cls, d: dict) -> 'ColorModel':
         exponents, post = d.get('exponents'), d.get('post')
         return cls(d['method'], np.asarray(d['matrix'], dtype=np.float64),
                    tuple(float(v) for v in exponents) if exponents is not None else None,

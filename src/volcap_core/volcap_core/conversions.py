@@ -189,9 +189,9 @@ def pointcloud2_to_points(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | No
     xyz = np.stack([cloud['x'], cloud['y'], cloud['z']], axis=1).astype(np.float32)
     keep = np.isfinite(xyz).all(axis=1)
     rgb = None
-    colour_field = 'rgb' if 'rgb' in names else 'rgba' if 'rgba' in names else None
-    if colour_field:
-        packed = cloud[colour_field].astype(np.uint32)
+    color_field = 'rgb' if 'rgb' in names else 'rgba' if 'rgba' in names else None
+    if color_field:
+        packed = cloud[color_field].astype(np.uint32)
         rgb = np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8)[keep]
     return xyz[keep], rgb
 

@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-import yaml
 
 from volcap_core import topics
 from volcap_core.camera import CameraModel
@@ -81,7 +80,7 @@ def frame_sets(path: str | Path, phases: tuple[str, ...] | None = None, toleranc
 
         for m in reader.messages(wanted):
             if m.topic == topics.PHASE:
-                phase_changes[m.stamp_ns] = (yaml.safe_load(m.decode().data) or {}).get('phase')
+                phase_changes[m.stamp_ns] = topics.parse_phase(m.decode().data)
                 continue
             camera, _, rel = m.topic.partition('/')
             msg = m.decode()

@@ -1,5 +1,6 @@
-"""Topic names of the volcap contract (see README). Per-camera names are relative to the
+"""Topic names of the volcap contract (docs/architecture.md). Per-camera names are relative to the
 camera namespace ``cam<i>`` so that a launch can remap them onto a vendor driver's topics."""
+import yaml
 
 COLOR_IMAGE = 'color/image_raw'
 COLOR_INFO = 'color/camera_info'
@@ -33,3 +34,14 @@ def camera_topic(camera: str, topic: str) -> str:
 
 def camera_names(count: int) -> list[str]:
     return [f'cam{i}' for i in range(count)]
+
+
+def parse_phase(text: str) -> str | None:
+    """The phase a ``volcap/phase`` message (YAML ``{phase: ..., frames: N}``) announces; None
+    when the text is not such a message."""
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return None
+    phase = doc.get('phase') if isinstance(doc, dict) else None
+    return phase if isinstance(phase, str) else None

@@ -9,7 +9,7 @@ from scipy.optimize import least_squares
 
 from volcap_calib.calibrate import CalibrationConfig, Calibrator
 from volcap_calib.extrinsics import Observation, corner_residuals, sed_baseline
-from volcap_calib.report import colour_figure, colour_report, colour_summary, poses_figure
+from volcap_calib.report import color_figure, color_report, color_summary, poses_figure
 from volcap_calib.run import calibrator_from_bag, load_board
 from volcap_core.calibration import Calibration
 from volcap_core.camera import CameraModel
@@ -77,8 +77,8 @@ def evaluate_calibration(calibration_path: str | Path, bag: str | Path, board_fi
     ours = extrinsic_report(T_est, calibrator, T_gt, calibration.reference)
     baseline = sed_baseline(calibrator.observations, calibrator.models, calibration.reference)
     base = extrinsic_report(baseline.T_world_color, calibrator, T_gt, calibration.reference)
-    color = colour_report(calibration, calibrator)
-    report = {**ours, 'baseline_gradient_descent': base, 'colour': color, 'colour_average': colour_summary(color),
+    color = color_report(calibration, calibrator)
+    report = {**ours, 'baseline_gradient_descent': base, 'colour': color, 'colour_average': color_summary(color),
               'protocol': 'poses in the reference camera colour frame (the calibration world) against the '
                           'ground truth; reprojection with each board view posed once for the whole rig'}
     if figures:
@@ -86,7 +86,7 @@ def evaluate_calibration(calibration_path: str | Path, bag: str | Path, board_fi
         report['figures'] = [str(poses_figure(fig_dir / 'calib_eval_poses.png', T_est, {}, ours['cameras'],
                                               'estimated vs ground truth', T_gt))]
         if color:
-            report['figures'].append(str(colour_figure(fig_dir / 'calib_eval_colour.png', color)))
+            report['figures'].append(str(color_figure(fig_dir / 'calib_eval_colour.png', color)))
     return report
 
 

@@ -8,9 +8,10 @@ import cv2
 import numpy as np
 
 from volcap_calib.board import reference_srgb8
-from volcap_calib.chart import ChartNotFound, find_colour_checker
-from volcap_calib.colour import METHODS, component_differences, delta_e2000, fit_camera_colour
+from volcap_calib.chart import ChartNotFound, find_color_checker
+from volcap_calib.color import component_differences, fit_camera_color
 from volcap_calib.report import chart_figure
+from volcap_core.color import METHODS, delta_e2000
 
 
 def evaluate_charts(photos: list[str | Path], method: str | None = None, figures: str | Path | None = None
@@ -26,19 +27,19 @@ def evaluate_charts(photos: list[str | Path], method: str | None = None, figures
             continue
         image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         try:
-            chart = find_colour_checker(image, reference)
+            chart = find_color_checker(image, reference)
         except ChartNotFound as e:
             lines.append(f'{photo}: no ColorChecker: {e}')
             failed.append(str(photo))
             continue
-        fit = fit_camera_colour(chart.colours, reference, np.arange(24), method=method)
-        corrected = fit.model.apply(chart.colours)
-        de_before, de_after = delta_e2000(chart.colours, reference), delta_e2000(corrected, reference)
+        fit = fit_camera_color(chart.colors, reference, np.arange(24), method=method)
+        corrected = fit.model.apply(chart.colors)
+        de_before, de_after = delta_e2000(chart.colors, reference), delta_e2000(corrected, reference)
         name = Path(photo).stem
         result[name] = {'photo': str(photo), 'patches_found': chart.candidates, 'method': fit.model.method,
                         'model': fit.model.to_dict(), 'de2000_before': float(de_before.mean()),
                         'de2000_after': float(de_after.mean()), 'de2000_after_loo': fit.loo_de2000[fit.model.method],
-                        'loo_de2000': fit.loo_de2000, 'table1_before': component_differences(chart.colours, reference),
+                        'loo_de2000': fit.loo_de2000, 'table1_before': component_differences(chart.colors, reference),
                         'table1_after': component_differences(corrected, reference),
                         'patch_de2000_before': [float(v) for v in de_before],
                         'patch_de2000_after': [float(v) for v in de_after]}
@@ -48,7 +49,7 @@ def evaluate_charts(photos: list[str | Path], method: str | None = None, figures
         lines.append('  leave-one-patch-out per model: ' + ', '.join(f'{m} {fit.loo_de2000[m]:.2f}'
                                                                     for m in METHODS if m in fit.loo_de2000))
         if figures:
-            png = chart_figure(Path(figures) / f'{name}_chart.png', image, chart.centres, chart.colours,
+            png = chart_figure(Path(figures) / f'{name}_chart.png', image, chart.centres, chart.colors,
                                corrected, reference, de_before, de_after, f'{name}: {fit.model.method}')
             lines.append(f'  figure {png}')
     return {'photos': result, 'failed': failed}, lines

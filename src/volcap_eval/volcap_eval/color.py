@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from volcap_calib.colour import ColourModel, component_differences, delta_e2000, fit_model
+from volcap_calib.color import component_differences, fit_model
 from volcap_calib.run import chart_samples, load_board
 from volcap_color.correspondence import (
     CorrespondenceConfig,
@@ -59,8 +59,9 @@ from volcap_color.methods import (
     propagate,
 )
 from volcap_core.calibration import Calibration
+from volcap_core.color import ColorModel, delta_e2000
 
-from .color_figures import write_colour_figures
+from .color_figures import write_color_figures
 from .replay import capture_views
 
 METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon', 'paper_diagonal',
@@ -68,7 +69,7 @@ METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'mo
 
 
 @dataclass
-class ColourEvalConfig:
+class ColorEvalConfig:
     frames: int = 4                   # capture frame sets used (alternately fit / score)
     eval_min_fraction: float = 0.01
     fit_min_fraction: float = 0.001
@@ -100,8 +101,8 @@ def pair_scores(matches: dict[tuple[str, str], Matches], mappings: dict[str, Map
     out = {}
     for (a, b), m in matches.items():
         sel = np.arange(len(m)) if len(m) <= max_per_pair else rng.choice(len(m), max_per_pair, replace=False)
-        ca = _as_8bit(apply_mapping(mappings[a], m.colours_a[sel], m.pixels_a[sel]))
-        cb = _as_8bit(apply_mapping(mappings[b], m.colours_b[sel], m.pixels_b[sel]))
+        ca = _as_8bit(apply_mapping(mappings[a], m.colors_a[sel], m.pixels_a[sel]))
+        cb = _as_8bit(apply_mapping(mappings[b], m.colors_b[sel], m.pixels_b[sel]))
         mse = float(np.mean((ca - cb) ** 2))
         out[f'{a}-{b}'] = {'de2000': float(delta_e2000(ca, cb).mean()),
                            'psnr': float(10 * np.log10(1.0 / max(mse, 1e-12))), 'n': len(m)}
@@ -137,8 +138,8 @@ def chart_table(samples: dict[str, tuple[np.ndarray, np.ndarray]], mapping: dict
 
 
 def method_mappings(fit: dict[tuple[str, str], Matches], cameras: list[str], calibration: Calibration,
-                    chart_samples: dict[str, tuple[np.ndarray, np.ndarray]] | None, cfg: ColourEvalConfig
-                    ) -> tuple[dict[str, dict[str, Mapping]], dict[str, str], dict[str, dict[str, ColourModel]]]:
+                    chart_samples: dict[str, tuple[np.ndarray, np.ndarray]] | None, cfg: ColorEvalConfig
+                    ) -> tuple[dict[str, dict[str, Mapping]], dict[str, str], dict[str, dict[str, ColorModel]]]:
     """Every method's per-camera mapping, the methods left out (with why) and our fitted models."""
     out: dict[str, dict[str, Mapping]] = {'original': {c: identity for c in cameras}}
     skipped = {}
@@ -151,12 +152,12 @@ def method_mappings(fit: dict[tuple[str, str], Matches], cameras: list[str], cal
         out['paper_diagonal'] = {c: fit_model('paper_diagonal', *chart_samples[c]).apply for c in cameras}
     else:
         skipped['paper_diagonal'] = 'the bag has no board views of every camera to fit the chart diagonal from'
-    missing = [c for c in cameras if calibration.cameras[c].colour is None]
+    missing = [c for c in cameras if calibration.cameras[c].color is None]
     if missing:
         skipped['volcap_chart'] = f'{", ".join(missing)} have no colour model in the calibration'
     models = {}
     if not missing:
-        models['volcap_chart'] = {c: ColourModel.from_dict(calibration.cameras[c].colour) for c in cameras}
+        models['volcap_chart'] = {c: ColorModel.from_dict(calibration.cameras[c].color) for c in cameras}
     models['volcap_chart_free'] = chart_free_fit(fit, cameras, cfg.chart_free_model, cfg.chart_free_reference,
                                                  seed=cfg.seed)
     if 'volcap_chart' in models and 'paper_diagonal' in out:
@@ -183,13 +184,13 @@ def neural_mappings(models_dir: str | Path, views: list[View], cameras: list[str
         raise ValueError(f'{models_dir} has no networks for {", ".join(missing)}')
     sizes = {v.name: (v.camera.width, v.camera.height) for v in views}
     luts = {c: RegionLut.load(Path(models_dir) / f'{c}.lut.npz') for c in cameras}
-    net = {c: PixelMapping(lambda rgb, xy, c=c: harm.map_colours(c, rgb, xy), sizes[c]) for c in cameras}
+    net = {c: PixelMapping(lambda rgb, xy, c=c: harm.map_colors(c, rgb, xy), sizes[c]) for c in cameras}
     live = {c: PixelMapping(luts[c].apply_points, sizes[c]) for c in cameras}
     return {'neural': net, 'neural_live': live}, harm.report, luts
 
 
-def evaluate_colour(bag: str | Path, calibration: Calibration, chart_samples: dict | None = None,
-                    cfg: ColourEvalConfig = ColourEvalConfig(), progress: bool = True,
+def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dict | None = None,
+                    cfg: ColorEvalConfig = ColorEvalConfig(), progress: bool = True,
                     neural: str | Path | None = None) -> tuple[dict, dict]:
     """(report, extras): the report as documented in the README; extras hold the first scored
     frame set's views and every method's mappings, for figures."""
@@ -269,7 +270,7 @@ def format_report(report: dict) -> str:
     return '\n'.join(lines)
 
 
-def run(bag: str | Path, calibration_path: str | Path, cfg: ColourEvalConfig | None = None,
+def run(bag: str | Path, calibration_path: str | Path, cfg: ColorEvalConfig | None = None,
         board_file: str | Path | None = None, chart: bool = True, neural: str | Path | None = None,
         figures: str | Path | None = None, progress: bool = True) -> dict:
     """`volcap eval colour`: the report (``table1_skipped`` says why the chart table is left out,
@@ -277,11 +278,11 @@ def run(bag: str | Path, calibration_path: str | Path, cfg: ColourEvalConfig | N
     calibration = Calibration.load(calibration_path)
     samples, why = (None, 'skipped (--no-chart)') if not chart else \
         chart_samples(bag, load_board(board_file), list(calibration.cameras), progress)
-    report, extras = evaluate_colour(bag, calibration, samples, cfg or ColourEvalConfig(), progress, neural=neural)
+    report, extras = evaluate_color(bag, calibration, samples, cfg or ColorEvalConfig(), progress, neural=neural)
     if why:
         report['table1_skipped'] = why
     if figures:
-        report['figures'] = [str(p) for p in write_colour_figures(figures, report, extras['views'],
+        report['figures'] = [str(p) for p in write_color_figures(figures, report, extras['views'],
                                                                   extras['mappings'], extras['models'],
                                                                   extras['region_luts'])]
     return report

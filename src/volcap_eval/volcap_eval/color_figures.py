@@ -24,8 +24,8 @@ def bars_figure(path: str | Path, report: dict) -> Path:
     for ax, key, label in ((axes[0], 'de2000', 'CIEDE2000 (lower is better)'), (axes[1], 'psnr', 'PSNR dB (higher is better)')):
         means = [report['methods'][n][f'{key}_mean'] for n in names]
         stds = [report['methods'][n][f'{key}_std'] for n in names]
-        colours = ['tab:green' if n.startswith(('volcap', 'neural')) else 'tab:grey' if n == 'original' else 'tab:blue' for n in names]
-        ax.bar(np.arange(len(names)), means, yerr=stds, color=colours, capsize=3)
+        colors = ['tab:green' if n.startswith(('volcap', 'neural')) else 'tab:grey' if n == 'original' else 'tab:blue' for n in names]
+        ax.bar(np.arange(len(names)), means, yerr=stds, color=colors, capsize=3)
         ax.set_xticks(np.arange(len(names)), names, rotation=40, ha='right', fontsize=8)
         ax.set_title(label)
         ax.grid(axis='y', alpha=0.3)
@@ -58,7 +58,7 @@ def image_grid(path: str | Path, views: list[View], rows: dict[str, dict]) -> Pa
     return Path(path)
 
 
-def write_colour_figures(out_dir: str | Path, report: dict, views: list[View], mappings: dict, models: dict,
+def write_color_figures(out_dir: str | Path, report: dict, views: list[View], mappings: dict, models: dict,
                          region_luts: dict | None = None) -> list[Path]:
     """colour_methods.png (bars) and colour_images.png (original, our methods and, given its
     region LUTs, the neural method's live form per camera)."""

@@ -26,7 +26,7 @@ def depth_edges(depth: np.ndarray, relative_step: float = 0.03) -> np.ndarray:
     return valid & (far - depth > relative_step * depth)
 
 
-def colour_edges(rgb: np.ndarray) -> np.ndarray:
+def color_edges(rgb: np.ndarray) -> np.ndarray:
     gray = cv2.GaussianBlur(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (5, 5), 1.2)
     return cv2.Canny(gray, 40, 100) > 0
 
@@ -36,7 +36,7 @@ def edge_offsets(rgb: np.ndarray, registered: np.ndarray) -> dict:
     de = depth_edges(registered)
     if de.sum() < 50:
         raise ValueError('too few depth edges to compare (flat or empty depth image)')
-    dist = cv2.distanceTransform((~colour_edges(rgb)).astype(np.uint8), cv2.DIST_L2, 5)
+    dist = cv2.distanceTransform((~color_edges(rgb)).astype(np.uint8), cv2.DIST_L2, 5)
     v, u = np.nonzero(de)
     h, w = de.shape
     best = None

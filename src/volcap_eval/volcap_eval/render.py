@@ -71,17 +71,17 @@ def render(model: FusedModel, T_world_camera: np.ndarray, width: int = 480, heig
     uv = hit['primitive_uvs'].numpy()[seen]
     corners = model.triangles[tri[seen]]
     weights = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-    colour = np.einsum('nk,nkc->nc', weights, model.colors[corners].astype(np.float32))
+    color = np.einsum('nk,nkc->nc', weights, model.colors[corners].astype(np.float32))
     normal = hit['primitive_normals'].numpy()[seen]
     shade = 0.35 + 0.65 * np.abs(np.sum(normal * dirs[seen], axis=1))
-    image[seen] = np.clip(colour * shade[:, None], 0, 255).astype(np.uint8)
+    image[seen] = np.clip(color * shade[:, None], 0, 255).astype(np.uint8)
     return image
 
 
 def labelled(image: np.ndarray, text: str) -> np.ndarray:
     out = image.copy()
-    for colour, width in (((0, 0, 0), 4), ((255, 255, 255), 1)):
-        cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, width, cv2.LINE_AA)
+    for color, width in (((0, 0, 0), 4), ((255, 255, 255), 1)):
+        cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, color, width, cv2.LINE_AA)
     return out
 
 

@@ -99,11 +99,7 @@ class DepthFilter(Node):
             self.diagnostics.report('error', f'unusable rig description: {e}')
 
     def _on_phase(self, msg: String) -> None:
-        try:
-            phase = (yaml.safe_load(msg.data) or {}).get('phase')
-        except (yaml.YAMLError, AttributeError):
-            return
-        self._handle(self.session.set_phase(phase))
+        self._handle(self.session.set_phase(topics.parse_phase(msg.data)))
 
     def _on_capture_clean_plate(self, request, response):
         self.session.capture_clean_plate(self.node_cfg.clean_plate_frames)

@@ -45,7 +45,7 @@ class MaskConfig:
 
 
 @numba.njit(cache=True)
-def _colour_foreground(img, mean, inv_sigma, chroma_k, min_diff, shadow_min, highlight_max, out):
+def _color_foreground(img, mean, inv_sigma, chroma_k, min_diff, shadow_min, highlight_max, out):
     h, w, _ = img.shape
     for v in range(h):
         for u in range(w):
@@ -126,14 +126,14 @@ class BackgroundModel:
         return model
 
 
-def colour_foreground(rgb: np.ndarray, model: BackgroundModel, cfg: MaskConfig) -> np.ndarray:
+def color_foreground(rgb: np.ndarray, model: BackgroundModel, cfg: MaskConfig) -> np.ndarray:
     """Pixels whose colour cannot be the learnt background (before clean-up)."""
     mean, inv_sigma = model.statistics(cfg.noise_floor)
     if rgb.shape != mean.shape:
         raise ValueError(f'colour image is {rgb.shape[1]}x{rgb.shape[0]}, the clean plate is '
                          f'{mean.shape[1]}x{mean.shape[0]}')
     out = np.empty(rgb.shape[:2], np.bool_)
-    _colour_foreground(np.ascontiguousarray(rgb), mean, inv_sigma, cfg.chroma_sigmas, cfg.min_difference,
+    _color_foreground(np.ascontiguousarray(rgb), mean, inv_sigma, cfg.chroma_sigmas, cfg.min_difference,
                        cfg.shadow_min, cfg.highlight_max, out)
     return out
 
@@ -152,7 +152,7 @@ def foreground_mask(rgb: np.ndarray, depth_m: np.ndarray, model: BackgroundModel
     """Clean-plate foreground at the colour image's resolution; ``depth_m`` is the registered
     depth at any resolution of the same camera (resized here), flying pixels already removed."""
     h, w = rgb.shape[:2]
-    fg = colour_foreground(rgb, model, cfg)
+    fg = color_foreground(rgb, model, cfg)
     if depth_m is not None:
         bg = model.depth if model.depth is not None and model.depth.shape == depth_m.shape else None
         by_depth = depth_foreground(depth_m, bg, cfg).view(np.uint8)

@@ -194,7 +194,7 @@ class Rectifier:
         x0, y0, x1, y1 = roi
         depth_units = np.zeros((y1 - y0, x1 - x0), np.uint16)
         depth_K = _shifted(self.target.K, x0, y0)
-        color_crop = np.zeros((y1 - y0, x1 - x0, 3), np.uint8) if self.shared_grid else _NO_COLOUR
+        color_crop = np.zeros((y1 - y0, x1 - x0, 3), np.uint8) if self.shared_grid else _NO_COLOR
         _resample(depth_mm, color, self.map_x, self.map_y, x0, y0, depth_units, color_crop,
                   np.float32(self.edge_tolerance * 1000.0), np.float32(DEPTH_SCALE / 1000.0))
         if self.shared_grid:
@@ -241,7 +241,7 @@ def same_grid(a: CameraModel, b: CameraModel) -> bool:
     return bool(np.allclose(a.K, b.K, rtol=0.0, atol=1e-6) and np.allclose(a.D, b.D, rtol=0.0, atol=1e-9))
 
 
-_NO_COLOUR = np.zeros((0, 0, 3), np.uint8)   # colour output of a pass that picks none
+_NO_COLOR = np.zeros((0, 0, 3), np.uint8)   # colour output of a pass that picks none
 
 
 @numba.njit(cache=True)

@@ -123,10 +123,7 @@ class TsdfFusionNode(Node):
         self.get_logger().info(f'fusing {len(cameras)} cameras: {", ".join(cameras)}')
 
     def _on_phase(self, msg: String) -> None:
-        try:
-            self.phase = (yaml.safe_load(msg.data) or {}).get('phase')
-        except (yaml.YAMLError, AttributeError):
-            pass
+        self.phase = topics.parse_phase(msg.data)
 
     def _on_image(self, camera: str, stream: str, msg: Image) -> None:
         if self.sync is None:

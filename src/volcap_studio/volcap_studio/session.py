@@ -136,8 +136,8 @@ def write_preview(path: Path, rig: Rig, frames: dict) -> None:
         depth[f.depth.depth_mm == 0] = 0
         depth = cv2.resize(depth, (320, 288), interpolation=cv2.INTER_NEAREST)
         tile = np.vstack([color, depth])
-        for colour, width in (((0, 0, 0), 4), ((255, 255, 255), 1)):   # outlined, legible on any background
-            cv2.putText(tile, cam.name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, width, cv2.LINE_AA)
+        for ink, width in (((0, 0, 0), 4), ((255, 255, 255), 1)):   # outlined, legible on any background
+            cv2.putText(tile, cam.name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, ink, width, cv2.LINE_AA)
         tiles.append(tile)
     while len(tiles) % 4:
         tiles.append(np.zeros_like(tiles[0]))

@@ -21,18 +21,18 @@ from volcap_color.apply import ImageCorrector
 from volcap_color.correspondence import find_correspondences, merge_matches
 from volcap_core import transport
 from volcap_core.calibration import Calibration
-from volcap_core.color import ColourModel
-from volcap_eval.color import ColourEvalConfig, method_mappings
+from volcap_core.color import ColorModel
+from volcap_eval.color import ColorEvalConfig, method_mappings
 from volcap_eval.replay import capture_views
 
 M = np.array([[1.1, 0.05, -0.02], [0.03, 0.92, 0.01], [-0.04, 0.02, 1.2]])
 MODELS = {
-    'matrix_3x3': ColourModel('matrix_3x3', M),
-    'affine_3x4': ColourModel('affine_3x4', np.hstack([M, [[0.01], [-0.01], [0.0]]])),
-    'gamma_3x3 + harmonising post': ColourModel('gamma_3x3', M, (1.1, 0.95, 1.02),
+    'matrix_3x3': ColorModel('matrix_3x3', M),
+    'affine_3x4': ColorModel('affine_3x4', np.hstack([M, [[0.01], [-0.01], [0.0]]])),
+    'gamma_3x3 + harmonising post': ColorModel('gamma_3x3', M, (1.1, 0.95, 1.02),
                                                 post=np.hstack([np.eye(3) * 0.95, np.zeros((3, 1))])),
-    'root_polynomial_2 (3D LUT)': ColourModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])),
-    'paper_diagonal': ColourModel('paper_diagonal', np.diag([1.1, 0.9, 1.05])),
+    'root_polynomial_2 (3D LUT)': ColorModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])),
+    'paper_diagonal': ColorModel('paper_diagonal', np.diag([1.1, 0.9, 1.05])),
 }
 
 
@@ -58,7 +58,7 @@ def main(bag: str, calibration_path: str) -> None:
         print(f'ImageCorrector {name:<32} {ms:6.2f} ms  ({ms / bare:5.1f}x bare; {corrector.kind})')
 
     calibration = Calibration.load(calibration_path)
-    cfg = ColourEvalConfig()
+    cfg = ColorEvalConfig()
     t0 = time.perf_counter()
     sets = capture_views(bag, calibration, 2, progress=False)
     t_views = (time.perf_counter() - t0) / len(sets)

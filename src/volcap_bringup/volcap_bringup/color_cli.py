@@ -1,4 +1,5 @@
-"""``volcap eval colour``, ``volcap colour-fit`` and ``volcap harmonise``."""
+"""``volcap eval color``, ``volcap color-fit`` and ``volcap harmonise`` (``eval colour`` and ``colour-fit``
+are aliases)."""
 from __future__ import annotations
 
 import time
@@ -11,9 +12,9 @@ def _correspondence(args):
     return CorrespondenceConfig(min_fraction=0.0, **({'max_gradient': 0.0} if args.keep_edges else {}))
 
 
-def cmd_eval_colour(args) -> int:
-    from volcap_eval.color import ColourEvalConfig, format_report, run
-    report = run(args.bag, args.calibration, ColourEvalConfig(frames=args.frames, correspondence=_correspondence(args)),
+def cmd_eval_color(args) -> int:
+    from volcap_eval.color import ColorEvalConfig, format_report, run
+    report = run(args.bag, args.calibration, ColorEvalConfig(frames=args.frames, correspondence=_correspondence(args)),
                  board_file=args.board, chart=not args.no_chart, neural=args.neural, figures=args.figures,
                  progress=not args.quiet)
     print(format_report(report))
@@ -27,7 +28,7 @@ def cmd_eval_colour(args) -> int:
     return 0
 
 
-def cmd_colour_fit(args) -> int:
+def cmd_color_fit(args) -> int:
     from volcap_calib.run import chart_samples, load_board
     from volcap_color import fit
     from volcap_color.correspondence import cameras_in
@@ -54,7 +55,7 @@ def harmonise_config(args):
     except ValueError:
         raise ValueError(f'--lut-grid is NXxNY, for example 9x5, not {args.lut_grid!r}') from None
     keys = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points', 'mapper_epochs',
-            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference', 'lut_colours', 'seed',
+            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference', 'lut_colors', 'seed',
             'device', 'precision')
     cfg = HarmoniseConfig(**{k: getattr(args, k) for k in keys}, lut_grid=(nx, ny))
     cfg.validate()
@@ -86,23 +87,23 @@ def add_parsers(sub, eval_sub) -> None:
         p.add_argument('--board', help='board YAML (default: the volcap board)')
         p.add_argument('--quiet', action='store_true')
 
-    e = eval_sub.add_parser('colour', help='every colour method on the same correspondences (papers 000 and 001)')
+    e = eval_sub.add_parser('color', aliases=['colour'], help='every colour method on the same correspondences (papers 000 and 001)')
     common(e)
     e.add_argument('--json', help='write the report here')
     e.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
     e.add_argument('--no-chart', action='store_true', help='leave out the chart methods and table')
     e.add_argument('--neural', help='a volcap harmonise output folder: score its networks (neural) and live '
                                     'form (neural_live) too')
-    e.set_defaults(func=cmd_eval_colour)
+    e.set_defaults(func=cmd_eval_color)
 
-    f = sub.add_parser('colour-fit', help='per-camera colour models from correspondences between the cameras')
+    f = sub.add_parser('color-fit', aliases=['colour-fit'], help='per-camera colour models from correspondences between the cameras')
     common(f)
     f.add_argument('--out', required=True, help='calibration.yaml to write (the input with new colour models)')
     f.add_argument('--model', default='affine_3x4', choices=('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'))
     f.add_argument('--reference', default='mean',
                    help='mean (no camera favoured), chart (on top of the calibration\'s chart models, anchored to '
                         'the bag\'s board views) or a camera name')
-    f.set_defaults(func=cmd_colour_fit)
+    f.set_defaults(func=cmd_color_fit)
 
     from volcap_color.neural_config import HarmoniseConfig
     d = HarmoniseConfig()
@@ -128,7 +129,7 @@ def add_parsers(sub, eval_sub) -> None:
                         'affine map onto the reference (0: the paper, D sees the subject only)')
     h.add_argument('--reference', default=d.reference, help='camera whose colours D reproduces, or mean (E '
                                                             'averaged over every camera)')
-    h.add_argument('--lut-colours', type=int, default=d.lut_colours, help='live form: colour nodes per axis')
+    h.add_argument('--lut-colors', '--lut-colours', type=int, default=d.lut_colors, help='live form: colour nodes per axis')
     h.add_argument('--lut-grid', default='x'.join(map(str, d.lut_grid)), help='live form: image nodes, NXxNY')
     h.add_argument('--seed', type=int, default=d.seed)
     h.add_argument('--device', choices=('auto', 'cpu', 'cuda'), default=d.device)

@@ -13,7 +13,7 @@ from scipy.optimize import least_squares
 
 from volcap_core.color import (
     METHODS,
-    ColourModel,
+    ColorModel,
     delta_e2000,
     linear_to_lab,
     linear_to_srgb,
@@ -22,14 +22,12 @@ from volcap_core.color import (
     srgb_to_linear,
 )
 
-__all__ = ['METHODS', 'ColourModel', 'delta_e2000', 'linear_to_srgb', 'srgb_to_lab', 'srgb_to_linear']
 
-
-def _linear_fit(method: str, measured: np.ndarray, reference: np.ndarray) -> ColourModel:
+def _linear_fit(method: str, measured: np.ndarray, reference: np.ndarray) -> ColorModel:
     """The closed-form fit: paper Eqs. 9-10, or least squares in linear RGB."""
     if method == 'paper_diagonal':
         # Eqs. 9-10: k = mean(reference) / mean(observed), per channel.
-        return ColourModel(method, np.diag(reference.mean(0) / np.maximum(measured.mean(0), 1e-6)))
+        return ColorModel(method, np.diag(reference.mean(0) / np.maximum(measured.mean(0), 1e-6)))
     linear, target = srgb_to_linear(measured), srgb_to_linear(reference)
     X = model_features(method, linear)
     if len(X) < X.shape[1]:
@@ -41,12 +39,12 @@ def _linear_fit(method: str, measured: np.ndarray, reference: np.ndarray) -> Col
             return (F @ np.linalg.lstsq(F, target, rcond=None)[0] - target).ravel()
         g = least_squares(residual, np.ones(3), bounds=(0.5, 2.0)).x
         M, *_ = np.linalg.lstsq(model_features(method, linear, g), target, rcond=None)
-        return ColourModel(method, M.T, tuple(float(v) for v in g))
+        return ColorModel(method, M.T, tuple(float(v) for v in g))
     M, *_ = np.linalg.lstsq(X, target, rcond=None)
-    return ColourModel(method, M.T)
+    return ColorModel(method, M.T)
 
 
-def _refine_in_lab(model: ColourModel, measured: np.ndarray, reference: np.ndarray) -> ColourModel:
+def _refine_in_lab(model: ColorModel, measured: np.ndarray, reference: np.ndarray) -> ColorModel:
     """Least squares in CIELAB from ``model``: linear-RGB least squares lets the bright patches
     dominate, while CIEDE2000 weighs a dark patch's error as much as a bright one's; the Lab
     distance is the smooth stand-in for it (this halves the patch CIEDE2000 of some cameras)."""
@@ -55,7 +53,7 @@ def _refine_in_lab(model: ColourModel, measured: np.ndarray, reference: np.ndarr
     gamma = model.exponents is not None
 
     def unpack(x):
-        return ColourModel(model.method, x[:size].reshape(shape), tuple(float(v) for v in x[size:]) if gamma else None)
+        return ColorModel(model.method, x[:size].reshape(shape), tuple(float(v) for v in x[size:]) if gamma else None)
 
     def residual(x):
         return (linear_to_lab(unpack(x).apply_linear(linear)) - target).ravel()
@@ -69,7 +67,7 @@ def _refine_in_lab(model: ColourModel, measured: np.ndarray, reference: np.ndarr
 
 
 def fit_model(method: str, measured: np.ndarray, reference: np.ndarray, perceptual: bool = True,
-              start: ColourModel | None = None) -> ColourModel:
+              start: ColorModel | None = None) -> ColorModel:
     """Fit one model; measured and reference are (N, 3) sRGB in [0, 1]. The paper's diagonal is
     fitted as published; the others by least squares in linear RGB, then (``perceptual``) in
     CIELAB, from ``start`` when given (a fit on nearly the same data converges in a few steps)."""
@@ -105,8 +103,8 @@ def component_differences(measured: np.ndarray, reference: np.ndarray) -> dict:
 
 
 @dataclass
-class ColourFit:
-    model: ColourModel
+class ColorFit:
+    model: ColorModel
     loo_de2000: dict[str, float]     # every candidate's leave-one-patch-out error
     before: dict
     after: dict
@@ -171,14 +169,14 @@ def illuminated_reference(reference: np.ndarray, E_v: np.ndarray, patch_xy: np.n
     return linear_to_srgb(srgb_to_linear(np.asarray(reference, np.float64)) * illumination_at(E_v, basis))
 
 
-def fit_camera_colour(measured: np.ndarray, reference: np.ndarray, patch: np.ndarray,
-                      methods: tuple[str, ...] = METHODS, method: str | None = None) -> ColourFit:
+def fit_camera_color(measured: np.ndarray, reference: np.ndarray, patch: np.ndarray,
+                      methods: tuple[str, ...] = METHODS, method: str | None = None) -> ColorFit:
     """Fit every candidate, score each by leave-one-patch-out CIEDE2000, keep ``method`` or the best."""
     usable = [m for m in methods if m == 'paper_diagonal' or len(np.unique(patch)) > model_features(m, np.zeros((1, 3))).shape[1]]
     loo = {m: leave_one_patch_out(m, measured, reference, patch) for m in usable}
     chosen = method or min(loo, key=loo.get)
     model = fit_model(chosen, measured, reference)
     corrected = model.apply(measured)
-    return ColourFit(model, loo, component_differences(measured, reference), component_differences(corrected, reference),
+    return ColorFit(model, loo, component_differences(measured, reference), component_differences(corrected, reference),
                      float(delta_e2000(measured, reference).mean()), float(delta_e2000(corrected, reference).mean()),
                      len(measured))
