@@ -1,5 +1,5 @@
 """Colour stage timings at rig sizes (8 cameras, colour 1280x720), each against the raw library
-call measured in the same run (named colour_stage: a bench/colour.py would shadow colour-science):
+call measured in the same run (named color_stage: a bench/colour.py would shadow colour-science):
 
 - live correction per 1280x720 frame (``ImageCorrector``) for every kind of model, against one
   bare ``cv2.transform`` of the uint8 image with a 3x3 matrix (what a model on the encoded values
@@ -8,8 +8,8 @@ call measured in the same run (named colour_stage: a bench/colour.py would shado
   ``cv2.projectPoints`` of every valid pixel of every camera into every other camera;
 - the chart-free fit and the baselines on those correspondences.
 
-    python bench/colour_stage.py BAG CALIBRATION   (a bag with clean plate and capture frames, and
-                                              its calibration.yaml)
+    python bench/color_stage.py BAG CALIBRATION   (a bag with clean plate and capture frames, and
+                                             its calibration.yaml)
 """
 import sys
 import time

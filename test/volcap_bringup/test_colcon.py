@@ -81,6 +81,7 @@ def run_installed(install, pkg, exe, params, data):
                             text=True, start_new_session=True)
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('pkg, exe', declared_executables())
 def test_executables_start_from_the_install_space(install, pkg, exe, studio_bag, tmp_path, shared_data):
     path = install / pkg / 'lib' / pkg / exe

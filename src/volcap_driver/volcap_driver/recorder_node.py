@@ -10,12 +10,14 @@ offer (reliable / transient-local when all of them are), as rosbag2 does. The ba
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from volcap_core.bag_io import COMPRESSIONS, BagError, BagWriter, message_class
-from volcap_core.ros import Diagnostics, declare, run_node
+from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.settings import setting
 
 IGNORED = ('/rosout', '/parameter_events', '/volcap/diagnostics')
 
@@ -26,18 +28,22 @@ def _absolute(topic: str, namespace: str) -> str:
     return f'{namespace.rstrip("/")}/{topic}'
 
 
+@dataclass
+class RecorderConfig:
+    out: str = setting('', 'bag directory to create (must not exist)', read_only=True)
+    compression: str = setting('none', 'MCAP chunk compression', choices=COMPRESSIONS, read_only=True)
+    topics: tuple[str, ...] = setting(('',), 'topics to record (empty: every topic)', read_only=True)
+    discovery_period: float = setting(0.5, 'seconds between looks for new publishers', 0.05, 10.0, read_only=True)
+    max_duration: float = setting(0.0, 'stop after this many seconds (0: until stopped)', 0.0, 1e7, read_only=True)
+
+
 class Recorder(Node):
     def __init__(self, **node_options):
         """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
         super().__init__('recorder', **node_options)
-        out = declare(self, 'out', '', 'bag directory to create (must not exist)', read_only=True)
-        compression = declare(self, 'compression', 'none', f'MCAP chunk compression: {"|".join(COMPRESSIONS)}',
-                              read_only=True)
-        wanted = [t for t in declare(self, 'topics', [''], 'topics to record (empty: every topic)', read_only=True)
-                  if t]
-        period = declare(self, 'discovery_period', 0.5, 'seconds between looks for new publishers', 0.05, 10.0)
-        max_duration = declare(self, 'max_duration', 0.0, 'stop after this many seconds (0: until stopped)',
-                               0.0, 1e7)
+        cfg = declare_config(self, RecorderConfig)
+        out, compression, period, max_duration = cfg.out, cfg.compression, cfg.discovery_period, cfg.max_duration
+        wanted = [t for t in cfg.topics if t]
         self.diagnostics = Diagnostics(self, 'recording')
         self.wanted = {_absolute(t, self.get_namespace()) for t in wanted}
         self.exit_code = 0

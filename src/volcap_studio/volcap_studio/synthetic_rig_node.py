@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from rclpy.node import Node
@@ -19,7 +20,8 @@ from std_msgs.msg import String
 from volcap_calib.board import BoardConfig
 from volcap_core import qos, topics
 from volcap_core.conversions import camera_model_to_info, ns_to_stamp, numpy_to_image
-from volcap_core.ros import Diagnostics, declare, run_node
+from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.settings import setting
 from volcap_studio.studio import (
     SCENES,
     StudioRenderer,
@@ -31,23 +33,35 @@ from volcap_studio.studio import (
 )
 
 
+@dataclass
+class SyntheticRigConfig:
+    """What the live studio renders (a short loop: ray casting is far slower than real time) and
+    how fast it plays it; the rest of the studio is ``SynthConfig``'s."""
+    cameras: int = setting(8, 'number of cameras (two per stand)', 1, 16, read_only=True)
+    frames: int = setting(4, 'capture frames rendered for the loop', 0, 300, read_only=True)
+    board_poses: int = setting(0, 'calibration board poses in the loop', 0, 64, read_only=True)
+    background_frames: int = setting(0, 'clean-plate frames in the loop', 0, 64, read_only=True)
+    scene: str = setting('person', 'subject', choices=SCENES, read_only=True)
+    seed: int = setting(0, 'random seed', 0, 2**31 - 1, read_only=True)
+    fps: float = setting(30.0, 'frame sets per second', 0.1, 120.0, read_only=True)
+    k4a_calibration: str = setting('', 'Azure Kinect factory calibration JSON the rig is modelled on (empty: the '
+                                       'shared recording\'s)', read_only=True)
+    bunny_mesh: str = setting('', 'mesh of the bunny scene (empty: the shared one)', read_only=True)
+
+    def studio(self) -> SynthConfig:
+        return SynthConfig(cameras=self.cameras, frames=self.frames, board_poses=self.board_poses,
+                           background_frames=self.background_frames, scene=self.scene, seed=self.seed, fps=self.fps,
+                           k4a_calibration=self.k4a_calibration or default_k4a_calibration(),
+                           bunny_mesh=self.bunny_mesh or default_bunny_mesh())
+
+
 class SyntheticRig(Node):
     def __init__(self, **node_options):
         """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
         super().__init__('synthetic_rig', **node_options)
-        cfg = SynthConfig(
-            cameras=declare(self, 'cameras', 8, 'number of cameras (two per stand)', 1, 16, read_only=True),
-            frames=declare(self, 'frames', 4, 'capture frames rendered for the loop', 0, 300, read_only=True),
-            board_poses=declare(self, 'board_poses', 0, 'calibration board poses in the loop', 0, 64, read_only=True),
-            background_frames=declare(self, 'background_frames', 0, 'clean-plate frames in the loop', 0, 64,
-                                      read_only=True),
-            scene=declare(self, 'scene', 'person', f'subject: {"|".join(SCENES)}', read_only=True),
-            seed=declare(self, 'seed', 0, 'random seed', 0, 2**31 - 1, read_only=True),
-            k4a_calibration=declare(self, 'k4a_calibration', default_k4a_calibration(),
-                                    'Azure Kinect factory calibration JSON the rig is modelled on', read_only=True),
-            bunny_mesh=declare(self, 'bunny_mesh', default_bunny_mesh(), 'mesh of the bunny scene', read_only=True),
-        )
-        fps = declare(self, 'fps', 30.0, 'frame sets per second', 0.1, 120.0, read_only=True)
+        rig_cfg = declare_config(self, SyntheticRigConfig)
+        cfg = rig_cfg.studio()
+        fps = rig_cfg.fps
         self.diagnostics = Diagnostics(self, 'synthetic rig')
         rng = np.random.default_rng(cfg.seed)
         board = BoardConfig.from_yaml()
