@@ -18,7 +18,7 @@ setup(
     zip_safe=True,
     maintainer='volcap developers',
     maintainer_email='dev@volcap.invalid',
-    description='ChArUco and colour-chart board; extrinsic and colour calibration for volcap.',
+    description='ChArUco + colour-chart board, extrinsic and colour calibration, the calibration_service node.',
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={

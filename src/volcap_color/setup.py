@@ -18,7 +18,7 @@ setup(
     zip_safe=True,
     maintainer='volcap developers',
     maintainer_email='dev@volcap.invalid',
-    description='Per-camera colour correction, neural harmonisation and colour evaluation for volcap.',
+    description='Per-camera colour correction (the color_corrector node), chart-free and neural harmonisation.',
     license='Apache-2.0',
     # torch only for volcap harmonise (training); the node applies the exported LUTs without it
     extras_require={'test': ['pytest'], 'neural': ['torch']},

@@ -18,7 +18,7 @@ setup(
     zip_safe=True,
     maintainer='volcap developers',
     maintainer_email='dev@volcap.invalid',
-    description='Shared camera model, rig description, poses, message conversions, synchroniser, QoS and transport profile for volcap.',
+    description='Shared by every volcap package: cameras, rig, poses, calibration file, settings, bag I/O, sync, QoS.',
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={

@@ -18,7 +18,7 @@ setup(
     zip_safe=True,
     maintainer='volcap developers',
     maintainer_email='dev@volcap.invalid',
-    description='Depth registration and cleaning for volcap.',
+    description='Depth registration and cleaning, the depth_filter node.',
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={

@@ -18,7 +18,7 @@ setup(
     zip_safe=True,
     maintainer='volcap developers',
     maintainer_email='dev@volcap.invalid',
-    description='TSDF fusion, mesh and point-cloud output, volumetric sequence writer for volcap.',
+    description='TSDF fusion, mesh and point-cloud output, volumetric sequence writer, the tsdf_fusion node.',
     license='Apache-2.0',
     extras_require={'test': ['pytest']},
     entry_points={

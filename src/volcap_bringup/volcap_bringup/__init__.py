@@ -1,1 +1,2 @@
-"""Rig configs, launch file, composed runner and the volcap command line."""
+"""The volcap command line, `volcap run` (the whole graph on a bag), the graph description, the node
+table and the launch file."""

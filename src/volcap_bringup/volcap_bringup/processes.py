@@ -1,4 +1,5 @@
-"""Start volcap nodes as separate processes, as `ros2 run` does on a rig."""
+"""Every volcap node in one table, started as a separate process (as `ros2 run` does on a rig) or
+hosted in this one (`compose`)."""
 from __future__ import annotations
 
 import os

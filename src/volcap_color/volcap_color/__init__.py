@@ -1,1 +1,1 @@
-"""Per-camera colour correction, neural harmonisation and colour evaluation for volcap."""
+"""Per-camera colour correction (the color_corrector node), chart-free and neural harmonisation."""
