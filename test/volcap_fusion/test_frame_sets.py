@@ -1,10 +1,11 @@
 """The fusion node's frame-set step without ROS: complete, incomplete and empty frame sets,
 unusable cameras and the min_cameras policy."""
 import numpy as np
+import pytest
 
 from volcap_core import topics
 from volcap_core.camera import CameraModel
-from volcap_fusion.frame_sets import frame_set_views, fused_phase
+from volcap_fusion.frame_sets import ALL, frame_set_views, fused_cameras, fused_phase
 from volcap_fusion.tsdf import CameraView
 
 LENS = CameraModel(32, 24, 25.0, 25.0, 15.5, 11.5)
@@ -48,3 +49,10 @@ def test_phase_filter():
     phases = (topics.CAPTURE,)
     assert fused_phase(None, phases) and fused_phase(topics.CAPTURE, phases)
     assert not fused_phase(topics.CLEAN_PLATE, phases) and fused_phase(topics.CLEAN_PLATE, ())
+
+
+def test_cameras_to_fuse_come_from_the_calibration_or_the_parameter():
+    assert fused_cameras(CAMERAS, [ALL]) == CAMERAS
+    assert fused_cameras(CAMERAS, ['cam2', 'cam0']) == ['cam2', 'cam0']
+    with pytest.raises(ValueError, match=r"\['cam9'\] are not in the calibration"):
+        fused_cameras(CAMERAS, ['cam0', 'cam9'])

@@ -65,6 +65,17 @@ def frame_set_views(stamp_ns: int, cameras: list[str], parts: dict[str, Any],
     return FrameSetViews(stamp_ns, views, missing, problems, skipped)
 
 
+def fused_cameras(calibrated: list[str], wanted: list[str]) -> list[str]:
+    """The cameras to fuse: every calibrated one for ``[all]``, else ``wanted``, each of which the
+    calibration must have (ValueError naming the others)."""
+    if wanted == [ALL]:
+        return list(calibrated)
+    absent = [c for c in wanted if c not in calibrated]
+    if absent:
+        raise ValueError(f'cameras {absent} are not in the calibration')
+    return list(wanted)
+
+
 def fused_phase(announced: str | None, phases: tuple[str, ...]) -> bool:
     """Whether a frame set captured while ``announced`` was the session phase is fused (no phase
     announced, or no phase filter: every set)."""

@@ -43,7 +43,7 @@ from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSet, FrameSetSynchronizer
 from volcap_core.worker import DropOldestWorker
 
-from .frame_sets import ALL, FusionNodeConfig, frame_set_views, fused_phase
+from .frame_sets import FusionNodeConfig, frame_set_views, fused_cameras, fused_phase
 from .sequence import SequenceWriter
 from .tsdf import CameraView, FusionConfig, TsdfFusion, pick_device
 
@@ -91,10 +91,10 @@ class TsdfFusionNode(Node):
         except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
             self.diagnostics.report('error', f'unusable calibration: {e}')
             return
-        cameras = list(calibration.cameras) if self.wanted == [ALL] else self.wanted
-        absent = [c for c in cameras if c not in calibration.cameras]
-        if absent:
-            self.diagnostics.report('error', f'cameras {absent} are not in the calibration; calibration ignored')
+        try:
+            cameras = fused_cameras(list(calibration.cameras), self.wanted)
+        except ValueError as e:
+            self.diagnostics.report('error', f'{e}; calibration ignored')
             return
         self.calibration = calibration
         if cameras != self.cameras:
