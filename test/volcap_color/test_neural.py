@@ -159,3 +159,19 @@ def test_harmonise_rejects_an_unknown_reference(tmp_path):
         load_harmonisation(tmp_path)
 
 
+
+
+def test_models_written_before_the_color_spelling_still_load(trained, tmp_path):
+    """A harmonise folder's manifest from before identifiers were spelt "color" says lut_colours."""
+    import json
+    import shutil
+    sets, harm, out = trained
+    old = tmp_path / 'models'
+    shutil.copytree(out, old)
+    report = json.loads(json.dumps(harm.report))
+    report['config']['lut_colours'] = report['config'].pop('lut_colors')
+    (old / 'manifest.json').write_text(json.dumps(report))
+    loaded = load_harmonisation(old)
+    assert loaded.config == harm.config
+    rgb, xy = np.full((4, 3), 0.5, np.float32), np.full((4, 2), 0.5, np.float32)
+    assert np.allclose(loaded.map_colors('cam1', rgb, xy), harm.map_colors('cam1', rgb, xy), atol=1e-5)

@@ -24,7 +24,8 @@ class Outer:
 
 def test_nested_settings_are_flattened_in_parameter_form():
     assert [s.name for s in settings.settings(Outer)] == ['mode', 'gain', 'size', 'centre', 'label']
-    assert settings.values(Outer()) == {'mode': 'fast', 'gain': 1.0, 'size': [2, 3], 'centre': [0.0], 'label': ''}
+    defaults = {s.name: s.parameter_default for s in settings.settings(Outer)}
+    assert defaults == {'mode': 'fast', 'gain': 1.0, 'size': [2, 3], 'centre': [0.0], 'label': ''}
 
 
 def test_build_converts_parameters_back_and_validates():
@@ -60,3 +61,6 @@ def test_stage_configs_validate_their_defaults_and_reject_out_of_range_values():
         FusionConfig(voxel_size=0.5).validate()
     with pytest.raises(ValueError, match='min_axes'):
         settings.build(DepthFilterConfig, {'min_axes': 7})
+    # each value in range, the combination not: the config's own validate() refuses it
+    with pytest.raises(ValueError, match='min_range < max_range'):
+        settings.build(DepthFilterConfig, {'min_range': 3.0})

@@ -162,3 +162,28 @@ def test_frames_that_come_before_their_camera_info_are_held_not_lost(studio_bag,
         assert 1000 < np.count_nonzero(depth) < 0.5 * depth.size   # the subject kept, the studio masked out
     finally:
         probe.close()
+
+
+def test_parameters_change_while_running_and_invalid_combinations_are_refused(ros_context):
+    """Parameters come from the config dataclasses (volcap_core.ros.declare_config): a change is
+    validated as a whole configuration, read-only ones are refused, good ones reach the session."""
+    from rclpy.parameter import Parameter
+
+    from volcap_filter.depth_filter_node import DepthFilter
+    node = DepthFilter(context=ros_context, namespace='cam3')
+    try:
+        assert node.session.camera == 'cam3' and node.session.output_size == (0, 0)
+        assert node.get_parameter('max_range').value == 2.5
+        descriptor = node.describe_parameter('min_axes')
+        assert descriptor.integer_range[0].from_value == 1 and descriptor.integer_range[0].to_value == 4
+        ok, = node.set_parameters([Parameter('boundary_px', value=4)])
+        assert ok.successful and node.session.cfg.boundary_px == 4
+        bad, = node.set_parameters([Parameter('min_range', value=3.0)])     # in range, but beyond max_range
+        assert not bad.successful and 'min_range < max_range' in bad.reason
+        assert node.session.cfg.mask.min_range == 0.1 and node.get_parameter('min_range').value == 0.1
+        fixed, = node.set_parameters([Parameter('output_width', value=640)])
+        assert not fixed.successful                                           # read-only
+        ok, = node.set_parameters([Parameter('publish_points', value=False)])
+        assert ok.successful and node.node_cfg.publish_points is False
+    finally:
+        node.destroy_node()

@@ -174,8 +174,9 @@ def cmd_demo(args) -> int:
     models = out / 'neural'
     print(f'[4/7] neural colour harmonisation (paper 001), a short run of volcap harmonise -> {models}')
     t0 = time.perf_counter()
-    sets = capture_views(bag, Calibration.load(calibration), 4)
-    report = neural.run(sets, cameras_in(sets, Calibration.load(calibration)), HarmoniseConfig(**DEMO_HARMONISE),
+    rig_calibration = Calibration.load(calibration)
+    sets = capture_views(bag, rig_calibration, 4)
+    report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**DEMO_HARMONISE),
                         models, sources={'bag': str(bag), 'calibration': str(calibration)},
                         views_seconds=time.perf_counter() - t0)
     print('\n'.join(report.lines()))

@@ -5,6 +5,7 @@ reports."""
 from __future__ import annotations
 
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,7 @@ class CameraCorrection:
         self.neural = False
         self.neural_problem = ''
         self.corrected = self.passed = self.skipped = 0
-        self.ms: list[float] = []
+        self.ms: deque[float] = deque(maxlen=100)    # the latest corrections' times
         self._buffer: np.ndarray | None = None
 
     def load_neural(self, models_dir: str | Path) -> str:
@@ -76,7 +77,6 @@ class CameraCorrection:
         t0 = time.perf_counter()
         out = self._buffer = self.corrector(rgb, self._buffer)
         self.ms.append((time.perf_counter() - t0) * 1e3)
-        del self.ms[:-100]
         self.corrected += 1
         return out
 

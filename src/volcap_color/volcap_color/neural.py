@@ -418,7 +418,8 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     if not manifest_path.exists():
         raise FileNotFoundError(f'{models_dir} has no {MANIFEST}: not a volcap harmonise output')
     manifest = json.loads(manifest_path.read_text())
-    cfg_dict = dict(manifest['config'])
+    # folders written before identifiers were spelt "color" say lut_colours
+    cfg_dict = {k.replace('colour', 'color'): v for k, v in manifest['config'].items()}
     cfg_dict['lut_grid'] = tuple(cfg_dict['lut_grid'])
     cfg = HarmoniseConfig(**cfg_dict)
     dev = pick_device(device)

@@ -63,7 +63,7 @@ def declare_config(node: Node, cls, on_change: Callable | None = None):
     as a whole and handed to ``on_change(config)``; an invalid one is refused with the reason."""
     specs = settings.settings(cls)
     for s in specs:
-        text = s.description + (f' ({s.range_text})' if s.choices else '')
+        text = s.description + (f' ({"|".join(map(str, s.choices))})' if s.choices else '')
         declare(node, s.name, s.parameter_default, text, s.low, s.high, s.read_only)
     names = [s.name for s in specs]
 

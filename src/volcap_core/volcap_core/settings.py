@@ -18,14 +18,14 @@ from typing import Any
 
 
 def setting(default=MISSING, description: str = '', low=None, high=None, *, choices: tuple | None = None,
-            read_only: bool = False, none_as=None, default_factory=MISSING, ros: bool = True):
+            read_only: bool = False, none_as=None, default_factory=MISSING):
     """A dataclass field with its documentation and limits.
 
     ``low``/``high`` bound numbers (and every element of a tuple); ``choices`` lists the allowed
     values; ``read_only`` settings take effect at start only; ``none_as`` is the list parameter
-    value that stands for ``None``; ``ros=False`` keeps a setting out of node parameters."""
+    value that stands for ``None``."""
     metadata = {'description': description, 'low': low, 'high': high, 'choices': choices,
-                'read_only': read_only, 'none_as': none_as, 'ros': ros}
+                'read_only': read_only, 'none_as': none_as}
     if default_factory is not MISSING:
         return field(default_factory=default_factory, metadata=metadata)
     return field(default=default, metadata=metadata)
@@ -75,7 +75,7 @@ def settings(cls) -> list[Setting]:
             out += [dataclasses.replace(s, path=(f.name, *s.path)) for s in settings(hints[f.name])]
             continue
         m = f.metadata
-        if 'description' not in m or not m.get('ros', True):
+        if 'description' not in m:
             continue
         out.append(Setting(f.name, (f.name,), _default(f), m['description'], m['low'], m['high'], m['choices'],
                            m['read_only'], m['none_as']))
@@ -105,7 +105,8 @@ def from_parameter(s: Setting, value):
 
 def build(cls, values: dict[str, Any]):
     """A config of ``cls`` from flattened setting values (ROS parameter form); the others keep
-    their defaults. Raises ValueError for unknown names and values out of range."""
+    their defaults. Raises ValueError for unknown names, values out of range and combinations the
+    config's own ``validate()`` refuses."""
     specs = {s.name: s for s in settings(cls)}
     unknown = set(values) - set(specs)
     if unknown:
@@ -115,7 +116,10 @@ def build(cls, values: dict[str, Any]):
         s = specs[name]
         nested.setdefault(s.path[:-1], {})[s.path[-1]] = from_parameter(s, value)
     cfg = _construct(cls, (), nested)
-    validate(cfg)
+    if hasattr(cfg, 'validate'):
+        cfg.validate()       # the ranges, and the checks that span several fields
+    else:
+        validate(cfg)
     return cfg
 
 
@@ -127,17 +131,6 @@ def _construct(cls, prefix: tuple, nested: dict):
         if isinstance(sub, type) and is_dataclass(sub):
             kwargs[f.name] = _construct(sub, (*prefix, f.name), nested)
     return cls(**kwargs)
-
-
-def values(cfg) -> dict[str, Any]:
-    """The flattened settings of a config, in ROS parameter form."""
-    out = {}
-    for s in settings(type(cfg)):
-        v = cfg
-        for part in s.path:
-            v = getattr(v, part)
-        out[s.name] = to_parameter(s, v)
-    return out
 
 
 def validate(cfg) -> None:

@@ -83,9 +83,7 @@ def evaluate_depth(bag: str | Path, methods: tuple[str, ...] = METHODS, max_fram
     configs = {m: method_config(m) for m in methods}
     captures = 0
     bar = tqdm(desc='evaluating depth cleaning', unit='frame set', disable=not progress)
-    for fs, cleaned in cleaned_frame_sets(bag, configs, output_size='half'):
-        if max_frames is not None and captures >= max_frames:
-            break
+    for fs, cleaned in cleaned_frame_sets(bag, configs, output_size='half', limit=max_frames):
         captures += 1
         arrays = gt.arrays(fs.index)
         for name, frame in fs.cameras.items():

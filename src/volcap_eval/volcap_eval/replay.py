@@ -31,8 +31,10 @@ class CleanedCamera:
 
 
 def cleaned_frame_sets(bag: str | Path, configs: dict[str, DepthFilterConfig], cameras: list[str] | None = None,
-                       output_size: str = 'full') -> Iterator[tuple[BagFrameSet, dict[str, dict[str, CleanedCamera]]]]:
-    """Per capture frame set of ``bag``: ``{config name: {camera: CleanedCamera}}``.
+                       output_size: str = 'full', limit: int | None = None
+                       ) -> Iterator[tuple[BagFrameSet, dict[str, dict[str, CleanedCamera]]]]:
+    """Per capture frame set of ``bag`` (the first ``limit`` of them; None: all):
+    ``{config name: {camera: CleanedCamera}}``.
 
     ``cameras`` limits the cameras (default: the rig's); ``output_size`` is ``full`` (the colour
     resolution, the depth_filter node's default) or ``half``."""
@@ -56,14 +58,17 @@ def cleaned_frame_sets(bag: str | Path, configs: dict[str, DepthFilterConfig], c
         s.set_model('depth', frame.depth_model)
         return s
 
+    if limit is not None and limit < 1:
+        return
+    captures = 0
     for fs in frame_sets(bag, phases=(CLEAN_PLATE, CAPTURE), cameras=names):
         out: dict[str, dict[str, CleanedCamera]] = {c: {} for c in configs}
         for name, frame in fs.cameras.items():
+            pair = FramePair(fs.stamp_ns, frame.color_frame_id, frame.depth_frame_id == frame.color_frame_id,
+                             (frame.color, frame.depth))
             for config in configs:
                 s = session(config, name, frame)
                 s.set_phase(fs.phase)
-                pair = FramePair(fs.stamp_ns, frame.color_frame_id, frame.depth_frame_id == frame.color_frame_id,
-                                 (frame.color, frame.depth))
                 for o in s.add(pair):
                     if o.kind == 'cleaned':
                         out[config][name] = CleanedCamera(frame, o.result, o.cleaner)
@@ -71,6 +76,9 @@ def cleaned_frame_sets(bag: str | Path, configs: dict[str, DepthFilterConfig], c
                         raise ValueError(o.message)
         if fs.phase == CAPTURE:
             yield fs, out
+            captures += 1
+            if captures == limit:
+                return
 
 
 def capture_views(bag: str | Path, calibration: Calibration, frames: int, progress: bool = True
@@ -80,7 +88,8 @@ def capture_views(bag: str | Path, calibration: Calibration, frames: int, progre
     rays: dict[str, np.ndarray] = {}          # per camera, shared by its views of every frame set
     sets = []
     bar = tqdm(total=frames, desc='capture frame sets', unit='set', disable=not progress)
-    for fs, cleaned in cleaned_frame_sets(bag, {'volcap': DepthFilterConfig()}, cameras=list(calibration.cameras)):
+    for fs, cleaned in cleaned_frame_sets(bag, {'volcap': DepthFilterConfig()}, cameras=list(calibration.cameras),
+                                          limit=frames):
         views = []
         for n, c in cleaned['volcap'].items():
             view = View(n, c.frame.color, smooth_depth(c.result.depth), c.cleaner.output_model,
@@ -89,8 +98,6 @@ def capture_views(bag: str | Path, calibration: Calibration, frames: int, progre
             views.append(view)
         sets.append(views)
         bar.update()
-        if len(sets) == frames:
-            break
     bar.close()
     if not sets:
         raise ValueError(f'{bag} has no capture frame sets: the colour evaluation needs a subject in view')

@@ -131,8 +131,8 @@ class DepthFilter(Node):
                                                 f'{fs.stamp_ns}; frame skipped')
                 continue
             color, depth = fs.get(self.camera, 'color'), fs.get(self.camera, 'depth')
-            pair = FramePair(fs.stamp_ns, color.header.frame_id, depth.header.frame_id == color.header.frame_id,
-                             (color, depth))
+            pair = FramePair(stamp_to_ns(color.header.stamp), color.header.frame_id,
+                             depth.header.frame_id == color.header.frame_id, (color, depth))
             self._handle(self.session.add(pair))
 
     # outcomes -----------------------------------------------------------------------------
@@ -150,8 +150,7 @@ class DepthFilter(Node):
 
     def _publish(self, o: Outcome) -> None:
         t0 = time.perf_counter()
-        color_msg = o.pair.payload[0]
-        stamp, frame = stamp_to_ns(color_msg.header.stamp), color_msg.header.frame_id
+        stamp, frame = o.pair.stamp_ns, o.pair.frame_id
         # camera_info first, so a subscriber rarely sees the image before it
         self.pub_info.publish(camera_model_to_info(o.cleaner.output_model, stamp, frame))
         self.pub_depth.publish(numpy_to_image(depth_to_millimetres(o.result.depth), '16UC1', stamp, frame))

@@ -37,11 +37,10 @@ class DepthFilterConfig:
     sor_std_ratio: float = setting(2.5, 'statistical outlier removal threshold (std ratios)', 0.1, 10.0)
 
     def validate(self) -> None:
-        validate(self)
+        validate(self)      # every range, the nested configs' too
         if len(self.chroma_key) != 3:
             raise ValueError(f'chroma_key must be three values 0-255, got {self.chroma_key}')
-        self.flying.validate()
-        self.mask.validate()
+        self.mask.validate()   # its cross-field checks
 
 
 @dataclass

@@ -50,7 +50,7 @@ class DepthFilterNodeConfig:
 class FramePair:
     """A colour and a depth image of one stamp; ``payload`` is whatever ``decode`` turns into
     (rgb uint8, depth float32 metres): messages in the node, arrays offline."""
-    stamp_ns: int
+    stamp_ns: int              # the colour image's: cleaned output carries it
     frame_id: str              # the colour optical frame
     registered: bool           # depth already registered to colour (same frame_id)
     payload: Any

@@ -147,8 +147,8 @@ class TsdfFusionNode(Node):
     def _fuse(self, item) -> None:
         fs, calibration, cameras = item
         t0 = time.perf_counter()
-        parts = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras
-                 if fs.get(c, 'depth') is not None and fs.get(c, 'color') is not None}
+        pairs = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras}
+        parts = {c: p for c, p in pairs.items() if None not in p}
         plan = frame_set_views(fs.stamp_ns, cameras, parts, lambda c, p: self._view(c, *p, calibration),
                                self.node_cfg.min_cameras)
         if plan.problems:
