@@ -30,7 +30,7 @@ MODELS = {
     'matrix_3x3': ColorModel('matrix_3x3', M),
     'affine_3x4': ColorModel('affine_3x4', np.hstack([M, [[0.01], [-0.01], [0.0]]])),
     'gamma_3x3 + harmonising post': ColorModel('gamma_3x3', M, (1.1, 0.95, 1.02),
-                                                post=np.hstack([np.eye(3) * 0.95, np.zeros((3, 1))])),
+                                               post=np.hstack([np.eye(3) * 0.95, np.zeros((3, 1))])),
     'root_polynomial_2 (3D LUT)': ColorModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])),
     'paper_diagonal': ColorModel('paper_diagonal', np.diag([1.1, 0.9, 1.05])),
 }

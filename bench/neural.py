@@ -76,7 +76,7 @@ def main() -> int:
     e_step = field['seconds'] / field['steps'] * 1e3
     n = cfg.field_batch
     bare_e = ColorField(np.zeros(3), np.ones(3), np.zeros(3), np.ones(3), cfg.field_width, cfg.point_frequencies,
-                         cfg.camera_frequencies)
+                        cfg.camera_frequencies)
     e_bare = bare_step_ms(bare_e, (torch.rand(n, 3), torch.rand(n, 3)), torch.rand(n, 3), bf16)
     conv = converged_epoch(field['losses'])
     result['field'] = {'samples': manifest['field_samples'], 'epochs': len(field['losses']), 'steps': field['steps'],

@@ -44,7 +44,7 @@ def measure(bag: Path, params: dict) -> float:
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     player = start_node('volcap_driver', 'bag_player', {'bag': str(bag), 'wait_for_subscribers': 20.0,
-                                                         'topics': [TOPIC], **params})
+                                                        'topics': [TOPIC], **params})
     try:
         deadline = time.monotonic() + 120
         while player.poll() is None and time.monotonic() < deadline:

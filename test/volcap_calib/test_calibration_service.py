@@ -17,7 +17,7 @@ pytestmark = pytest.mark.ros
 def _played(bag):
     cams = GroundTruth(bag).rig.names
     return [f'{c}/{t}' for c in cams for t in (topics.COLOR_IMAGE, topics.COLOR_INFO, topics.DEPTH_IMAGE,
-                                                topics.DEPTH_INFO)] + [topics.RIG, topics.PHASE]
+                                               topics.DEPTH_INFO)] + [topics.RIG, topics.PHASE]
 
 
 def _replay_and_call(bag, probe, procs, output):
@@ -61,7 +61,7 @@ def test_calibrate_service_publishes_latched_calibration(calib_bag, ros_context,
 
 
 def test_calibrate_service_failure_names_the_camera_and_keeps_the_file(calib_bag_blind_camera, ros_context, procs,
-                                                                        tmp_path, probe_factory):
+                                                                       tmp_path, probe_factory):
     output = tmp_path / 'calibration.yaml'
     output.write_text('previous calibration\n')
     probe = probe_factory([])

@@ -56,7 +56,7 @@ def test_every_camera_of_a_replayed_bag_is_corrected(studio_bag, ros_context, pr
 def test_new_calibration_is_used_without_restart_and_bad_images_are_reported(ros_context, procs, probe_factory):
     cam = 'cam3'
     probe = probe_factory([(f'/{cam}/{topics.COLOR_CORRECTED}', Image, qos.SENSOR),
-                                ('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
+                           ('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     image_pub = probe.node.create_publisher(Image, f'/{cam}/{topics.COLOR_IMAGE}', qos.DRIVER)
     calib_pub = probe.node.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
     grey = np.full((48, 64, 3), 128, np.uint8)
@@ -107,7 +107,7 @@ def test_neural_models_are_applied_live(ros_context, procs, tmp_path, probe_fact
     table[..., 0, :], table[..., 1, :] = 40.0, 200.0
     RegionLut(table).save(tmp_path / 'cam2.lut.npz')
     probe = probe_factory([(f'/{c}/{topics.COLOR_CORRECTED}', Image, qos.SENSOR) for c in ('cam2', 'cam5')]
-                  + [('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
+                          + [('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     pubs = {c: probe.node.create_publisher(Image, f'/{c}/{topics.COLOR_IMAGE}', qos.DRIVER) for c in ('cam2', 'cam5')}
     calib_pub = probe.node.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
     calib_pub.publish(String(data=_calibration(['cam2', 'cam5'], 0.25).to_yaml()))

@@ -38,7 +38,7 @@ def test_filter_nodes_clean_a_replayed_bag_on_every_camera(studio_bag, ros_conte
         for c in cams:
             procs.append(start_node('volcap_filter', 'depth_filter', {}, namespace=c))
         played = [f'{c}/{t}' for c in cams for t in (topics.COLOR_IMAGE, topics.COLOR_INFO, topics.DEPTH_IMAGE,
-                                                      topics.DEPTH_INFO)] + [topics.RIG, topics.PHASE]
+                                                     topics.DEPTH_INFO)] + [topics.RIG, topics.PHASE]
         play(studio_bag, wait_for_subscribers=60.0, topics=played, rate=0.5)
         assert probe.spin_until(lambda: all(captured(t) for t, _, _ in outputs), timeout=150), \
             f'no capture frame on {[t for t, _, _ in outputs if not captured(t)]}'
@@ -59,7 +59,7 @@ def _one_camera(ros_context, cam, profile, probe_factory):
     """A probe on the camera's clean depth (reliable: the tests send single frames) and the
     diagnostics, and publishers for its inputs and the rig."""
     probe = probe_factory([(f'/{cam}/{topics.DEPTH_CLEAN}', Image, qos.EVERY_FRAME),
-                                ('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
+                           ('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     pubs = {t: probe.node.create_publisher(k, f'/{cam}/{t}', profile)
             for t, k in ((topics.COLOR_IMAGE, Image), (topics.COLOR_INFO, CameraInfo), (topics.DEPTH_IMAGE, Image),
                          (topics.DEPTH_INFO, CameraInfo))}

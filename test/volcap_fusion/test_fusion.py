@@ -146,7 +146,7 @@ def test_depth_and_color_on_one_grid_are_rectified_in_one_pass():
     # the depth is what the two-grid path gives; the colour is the lens-corrected colour image
     # under every pixel with depth, on the same grid with the same intrinsics
     two_grids = Rectifier(v.depth_model, v.color_model.scaled(1280, 720))(v.depth_mm,
-                                                                      np.zeros((720, 1280, 3), np.uint8))
+                                                                          np.zeros((720, 1280, 3), np.uint8))
     assert np.array_equal(one_pass.depth, two_grids.depth) and np.array_equal(one_pass.depth_K, one_pass.color_K)
     x0, y0 = crop_origin(one_pass.depth_K, LENS)
     h, w = one_pass.depth.shape

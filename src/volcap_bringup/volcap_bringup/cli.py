@@ -143,8 +143,8 @@ def cmd_demo(args) -> int:
     executor = SingleThreadedExecutor()
     executor.add_node(monitor)
     player = start_node('volcap_driver', 'bag_player', {'bag': str(bag), 'exit_when_done': True,
-                                                         'wait_for_subscribers': 10.0,
-                                                         'topics': monitor.topics})
+                                                        'wait_for_subscribers': 10.0,
+                                                        'topics': monitor.topics})
     try:
         deadline = time.monotonic() + duration + 60
         while player.poll() is None and time.monotonic() < deadline:

@@ -110,7 +110,7 @@ def reference_linear_rgb(name: str = ChartLayout.reference) -> np.ndarray:
     xyY = np.array(list(chart.data.values()))
     XYZ = color_science.xyY_to_XYZ(xyY)
     rgb = color_science.XYZ_to_sRGB(XYZ, illuminant=chart.illuminant, chromatic_adaptation_transform='Bradford',
-                             apply_cctf_encoding=False)
+                                    apply_cctf_encoding=False)
     return np.clip(rgb, 0.0, 1.0)
 
 

@@ -62,7 +62,7 @@ class CalibrationOutcome:
 
 
 def patch_colors(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray, board: BoardConfig,
-                  inner: float = 0.6, min_side_px: float = 12.0, max_angle_deg: float = 70.0
+                 inner: float = 0.6, min_side_px: float = 12.0, max_angle_deg: float = 70.0
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(24, 3) sRGB in [0, 1] of each chart patch, robust (inter-quartile) mean of its central
     part, and (24, 2) the patch centres in the image; NaN rows for patches out of view, too
@@ -141,7 +141,7 @@ class Calibrator:
         self.models[name] = model
         self.observations.append(obs)
         colors, centres = patch_colors(frame.color, model, T, self.board, self.cfg.patch_inner, self.cfg.min_patch_px,
-                                self.cfg.max_chart_angle_deg)
+                                       self.cfg.max_chart_angle_deg)
         if np.isfinite(colors).all(axis=1).any():
             self.patches[name].append((view, colors))
             self.patch_pixels[name].append(centres)

@@ -161,7 +161,7 @@ def sample_cells(image: np.ndarray, H: np.ndarray, cells: np.ndarray, inner: flo
 
 
 def find_color_checker(image: np.ndarray, reference: np.ndarray, min_patches: int = 12,
-                        max_residual: float = 0.1) -> ChartReading:
+                       max_residual: float = 0.1) -> ChartReading:
     """Locate a ColorChecker Classic in an RGB uint8 ``image``; ``reference`` is the (24, 3) sRGB
     [0, 1] chart reference in patch order, used to tell the chart's orientation and to refuse a
     lattice of squares whose colours no 3x3 matrix maps to the chart's (a chessboard): the best

@@ -170,7 +170,7 @@ def illuminated_reference(reference: np.ndarray, E_v: np.ndarray, patch_xy: np.n
 
 
 def fit_camera_color(measured: np.ndarray, reference: np.ndarray, patch: np.ndarray,
-                      methods: tuple[str, ...] = METHODS, method: str | None = None) -> ColorFit:
+                     methods: tuple[str, ...] = METHODS, method: str | None = None) -> ColorFit:
     """Fit every candidate, score each by leave-one-patch-out CIEDE2000, keep ``method`` or the best."""
     usable = [m for m in methods if m == 'paper_diagonal' or len(np.unique(patch)) > model_features(m, np.zeros((1, 3))).shape[1]]
     loo = {m: leave_one_patch_out(m, measured, reference, patch) for m in usable}
@@ -178,5 +178,5 @@ def fit_camera_color(measured: np.ndarray, reference: np.ndarray, patch: np.ndar
     model = fit_model(chosen, measured, reference)
     corrected = model.apply(measured)
     return ColorFit(model, loo, component_differences(measured, reference), component_differences(corrected, reference),
-                     float(delta_e2000(measured, reference).mean()), float(delta_e2000(corrected, reference).mean()),
-                     len(measured))
+                    float(delta_e2000(measured, reference).mean()), float(delta_e2000(corrected, reference).mean()),
+                    len(measured))

@@ -295,7 +295,7 @@ def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> ColorField:
     centres = np.unique(samples.centres, axis=0)
     camera_std = np.maximum(centres.std(0), 1e-3) if len(centres) > 1 else np.ones(3, np.float32)
     return ColorField(samples.points.mean(0), np.maximum(samples.points.std(0), 1e-3), centres.mean(0), camera_std,
-                       cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
+                      cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
 
 
 def _with_background(views: list[View], mine: SurfaceSamples, target: torch.Tensor, count: int,
@@ -425,7 +425,7 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     dev = pick_device(device)
     state = torch.load(models_dir / FIELD_FILE, map_location=dev, weights_only=False)['state']
     field_model = ColorField(state['point_mean'], state['point_std'], state['camera_mean'], state['camera_std'],
-                              cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies).to(dev)
+                             cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies).to(dev)
     field_model.load_state_dict(state)
     field_model.eval()
     mappers = {}

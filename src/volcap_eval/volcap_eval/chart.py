@@ -47,7 +47,7 @@ def evaluate_charts(photos: list[str | Path], method: str | None = None, figures
                      f'CIEDE2000 {de_before.mean():.2f} -> {de_after.mean():.2f} (leave-one-patch-out '
                      f'{fit.loo_de2000[fit.model.method]:.2f}, max {de_after.max():.2f})')
         lines.append('  leave-one-patch-out per model: ' + ', '.join(f'{m} {fit.loo_de2000[m]:.2f}'
-                                                                    for m in METHODS if m in fit.loo_de2000))
+                                                                     for m in METHODS if m in fit.loo_de2000))
         if figures:
             png = chart_figure(Path(figures) / f'{name}_chart.png', image, chart.centres, chart.colors,
                                corrected, reference, de_before, de_after, f'{name}: {fit.model.method}')

@@ -190,8 +190,8 @@ def neural_mappings(models_dir: str | Path, views: list[View], cameras: list[str
 
 
 def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dict | None = None,
-                    cfg: ColorEvalConfig = ColorEvalConfig(), progress: bool = True,
-                    neural: str | Path | None = None) -> tuple[dict, dict]:
+                   cfg: ColorEvalConfig = ColorEvalConfig(), progress: bool = True,
+                   neural: str | Path | None = None) -> tuple[dict, dict]:
     """(report, extras): the report as documented in the README; extras hold the first scored
     frame set's views and every method's mappings, for figures."""
     sets = capture_views(bag, calibration, cfg.frames, progress)
@@ -221,7 +221,7 @@ def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dic
         if chart_samples:
             table1[name] = chart_table(chart_samples, mappings[name])
     report = {'bag': str(bag), 'cameras': cameras, 'frame_sets': {'fit': fit_idx, 'scored': score_idx,
-                                                                   'held_out': score_idx != fit_idx},
+                                                                  'held_out': score_idx != fit_idx},
               'methods': methods, 'methods_all_pairs': all_pairs, 'skipped': skipped, 'pairs': pairs,
               'correspondences': {'fit_pairs': {f'{a}-{b}': len(m) for (a, b), m in fit.items()},
                                   'scored_pairs': {f'{a}-{b}': len(m) for (a, b), m in scored.items()}},
@@ -283,6 +283,6 @@ def run(bag: str | Path, calibration_path: str | Path, cfg: ColorEvalConfig | No
         report['table1_skipped'] = why
     if figures:
         report['figures'] = [str(p) for p in write_color_figures(figures, report, extras['views'],
-                                                                  extras['mappings'], extras['models'],
-                                                                  extras['region_luts'])]
+                                                                 extras['mappings'], extras['models'],
+                                                                 extras['region_luts'])]
     return report

@@ -59,7 +59,7 @@ def image_grid(path: str | Path, views: list[View], rows: dict[str, dict]) -> Pa
 
 
 def write_color_figures(out_dir: str | Path, report: dict, views: list[View], mappings: dict, models: dict,
-                         region_luts: dict | None = None) -> list[Path]:
+                        region_luts: dict | None = None) -> list[Path]:
     """colour_methods.png (bars) and colour_images.png (original, our methods and, given its
     region LUTs, the neural method's live form per camera)."""
     out_dir = Path(out_dir)

@@ -134,7 +134,7 @@ def color_foreground(rgb: np.ndarray, model: BackgroundModel, cfg: MaskConfig) -
                          f'{mean.shape[1]}x{mean.shape[0]}')
     out = np.empty(rgb.shape[:2], np.bool_)
     _color_foreground(np.ascontiguousarray(rgb), mean, inv_sigma, cfg.chroma_sigmas, cfg.min_difference,
-                       cfg.shadow_min, cfg.highlight_max, out)
+                      cfg.shadow_min, cfg.highlight_max, out)
     return out
 
 
