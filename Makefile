@@ -17,12 +17,25 @@ export MALLOC_TRIM_THRESHOLD_ := 268435456
 
 venv: $(STAMP)
 
-$(STAMP): requirements.txt constraints.txt Makefile
+$(STAMP): requirements.txt constraints.txt tools/tf2_msgs/requirements.txt $(wildcard tools/tf2_msgs/*.*) Makefile
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
 	  echo "installing Debian libusb-1.0-0 (needed by Open3D)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0; }
+	@{ command -v cmake && command -v g++ && test -f /usr/include/python3.11/Python.h; } >/dev/null || { \
+	  echo "installing Debian cmake, g++, python3.11-dev (to build tf2_msgs)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq cmake g++ python3.11-dev; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt -c constraints.txt
+	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt -r tools/tf2_msgs/requirements.txt \
+	  -c constraints.txt
+	@# tf2_msgs (for /tf_static) is on no registry here: build it with the rosidl toolchain into the venv,
+	@# whose lib/ the ROS wheels already put on LD_LIBRARY_PATH.
+	@echo "building tf2_msgs into $(VENV) (rosidl, about 2 minutes)"
+	@rm -rf build/tf2_msgs
+	@PATH="$(CURDIR)/$(VENV)/bin:$$PATH" AMENT_PREFIX_PATH="$(CURDIR)/$(VENV)" CMAKE_PREFIX_PATH="$(CURDIR)/$(VENV)" \
+	  sh -c 'cmake -S tools/tf2_msgs -B build/tf2_msgs -DCMAKE_INSTALL_PREFIX="$(CURDIR)/$(VENV)" \
+	    -DPython3_EXECUTABLE="$(CURDIR)/$(PY)" -DBUILD_TESTING=OFF && cmake --build build/tf2_msgs -j2 \
+	    && cmake --install build/tf2_msgs' > build-tf2_msgs.log 2>&1 || { tail -30 build-tf2_msgs.log; exit 1; }
+	$(PY) -c 'from tf2_msgs.msg import TFMessage; TFMessage()'
 	@# The volcap packages run from src/ in the venv (colcon builds the same tree for a rig).
 	@$(PY) -c 'import pathlib, sysconfig; site = pathlib.Path(sysconfig.get_paths()["purelib"]); \
 	  (site / "volcap_src.pth").write_text("".join(str(p.resolve()) + "\n" for p in sorted(pathlib.Path("src").glob("volcap_*"))))'

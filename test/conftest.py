@@ -59,6 +59,15 @@ def calib_bag_blind_camera(tmp_path_factory, shared_data):
 
 
 @pytest.fixture(scope='session')
+def k4a_bag(tmp_path_factory, shared_data):
+    """The real Azure Kinect recording as a one-camera volcap bag."""
+    from volcap_driver.k4a_import import import_k4a
+    bag = tmp_path_factory.mktemp('k4a') / 'bag'
+    import_k4a(shared_data / 'azure_kinect' / 'recording.mkv', bag, progress=False)
+    return bag
+
+
+@pytest.fixture(scope='session')
 def gt_calibration():
     """A calibration with a synthetic bag's true camera poses (and, optionally, one colour model
     for every camera)."""

@@ -48,7 +48,8 @@ def test_zstd_is_smaller_and_mcap_tools_decode_it(tmp_path):
     with open(tmp_path / 'packed' / 'packed.mcap', 'rb') as f:
         decoded = [(c.topic, m) for _, c, _, m in make_reader(f, decoder_factories=[DecoderFactory()])
                    .iter_decoded_messages()]
-    images = [m for topic, m in decoded if topic == 'cam0/color/image_raw']
+    # Stored fully qualified, as `ros2 bag record` writes; the reader hands out relative names.
+    images = [m for topic, m in decoded if topic == '/cam0/color/image_raw']
     assert len(images) == 6 and images[3].encoding == 'rgb8' and images[3].width == 320
     assert bytes(images[3].data)[:3] == bytes([60, 60, 60])
 
@@ -94,6 +95,21 @@ def test_sqlite3_bags_are_read(tmp_path):
     with BagReader(tmp_path / 'sq') as bag:
         msgs = list(bag.messages())
     assert [image_to_numpy(m.decode())[0, 0, 0] for m in msgs] == [0, 1, 2]
+
+
+@pytest.mark.parametrize('storage', [StoragePlugin.MCAP, StoragePlugin.SQLITE3])
+@pytest.mark.parametrize('name', ['/cam0/color/image_raw', 'cam0/color/image_raw'])
+def test_both_topic_name_forms_read_alike(tmp_path, storage, name):
+    """A bag by `ros2 bag record` (fully qualified names) and one by older volcap (relative)."""
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(tmp_path / 'b', version=9, storage_plugin=storage) as w:
+        conn = w.add_connection(name, 'sensor_msgs/msg/Image', typestore=ts)
+        w.write(conn, 10, serialize_message(numpy_to_image(np.full((4, 5, 3), 7, np.uint8), 'rgb8', 10)))
+    with BagReader(tmp_path / 'b') as bag:
+        assert bag.topics == {'cam0/color/image_raw': 'sensor_msgs/msg/Image'}
+        assert bag.topic_counts == {'cam0/color/image_raw': 1}
+        for wanted in (['/cam0/color/image_raw'], ['cam0/color/image_raw'], None):
+            assert [m.topic for m in bag.messages(wanted)] == ['cam0/color/image_raw']
 
 
 def test_message_class_errors():

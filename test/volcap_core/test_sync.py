@@ -1,6 +1,6 @@
 import pytest
 
-from volcap_core.sync import FrameSetSynchronizer
+from volcap_core.sync import FrameSetSynchronizer, PeriodEstimate, tolerance_for_period
 
 MS = 1_000_000
 CAMS = ['cam0', 'cam1', 'cam2']
@@ -73,3 +73,32 @@ def test_invalid_arguments():
         FrameSetSynchronizer([])
     with pytest.raises(ValueError):
         FrameSetSynchronizer(['a'], max_pending=0)
+
+
+@pytest.mark.parametrize('fps', [30, 15, 5])
+@pytest.mark.parametrize('offset_ms', [0, 8, 15])
+def test_automatic_tolerance_pairs_separately_stamped_colour_and_depth(fps, offset_ms):
+    """Real drivers stamp colour and depth apart: 8 or 15 ms at 30 fps must still pair, and
+    consecutive frames never do."""
+    period = 1_000_000_000 // fps
+    sync = FrameSetSynchronizer(CAMS, ('color', 'depth'), timeout_ns=10**12)
+    sets = []
+    for k in range(60):
+        depth_stamp = 5 * 10**9 + k * period
+        for cam in CAMS:
+            sets += sync.add(cam, depth_stamp, ('d', k), stream='depth')
+            sets += sync.add(cam, depth_stamp + offset_ms * MS, ('c', k), stream='color')
+    sets += sync.flush()
+    assert len(sets) == 60 and all(fs.complete for fs in sets)
+    assert all(fs.get(cam, 'color')[1] == fs.get(cam, 'depth')[1] for fs in sets for cam in CAMS)
+    assert sync.stats.late == 0
+    assert sync.tolerance_ns == tolerance_for_period(period) and offset_ms * MS < sync.tolerance_ns < period / 2
+
+
+def test_period_estimate_ignores_pauses_and_dropped_frames():
+    est = PeriodEstimate()
+    stamps = [k * 33_333_333 for k in range(40) if k % 7]            # every seventh frame dropped
+    stamps += [stamps[-1] + 5 * 10**9 + k * 33_333_333 for k in range(5)]   # a 5 s pause
+    for s in stamps:
+        est.add('cam0', s)
+    assert abs(est.period_ns - 33_333_333) <= 1

@@ -1,8 +1,6 @@
 """`volcap eval depth` on a rendered studio and `volcap eval registration` on the real Azure Kinect recording."""
 import json
 
-import pytest
-
 from volcap_core.poses import invert
 from volcap_eval.depth import evaluate_depth
 from volcap_filter.registration import DepthRegistration
@@ -21,14 +19,6 @@ def test_depth_evaluation_on_the_studio(studio_bag, tmp_path):
     assert (tmp_path / 'fig' / 'volcap_cam0_mask.png').exists()
     assert (tmp_path / 'fig' / 'paper_all_cam0_depth.png').exists()
     json.dumps(report)
-
-
-@pytest.fixture(scope='module')
-def k4a_bag(tmp_path_factory, shared_data):
-    from volcap_driver.k4a_import import import_k4a
-    bag = tmp_path_factory.mktemp('k4a') / 'bag'
-    import_k4a(shared_data / 'azure_kinect' / 'recording.mkv', bag, progress=False)
-    return bag
 
 
 def test_real_kinect_registration_lines_up(k4a_bag, tmp_path):

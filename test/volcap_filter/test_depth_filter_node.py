@@ -106,7 +106,7 @@ def test_bad_frames_are_reported_and_skipped(studio_bag, ros_context, procs, pro
 
         good = depth_to_millimetres(frame.depth)
         assert reported('no camera_info yet', good, infos=False)
-        assert reported('waiting for the rig', good)
+        assert reported('waiting for the depth-to-colour extrinsic', good)
         rig_pub.publish(String(data=rig.to_yaml()))
         assert reported('camera_info says', good[:100, :100].copy())
         assert reported('no valid pixel', np.zeros_like(good))

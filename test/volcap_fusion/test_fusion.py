@@ -8,7 +8,14 @@ import pytest
 from volcap_core.camera import CameraModel, depth_to_millimetres
 from volcap_eval.render import camera_up, look_at, orbit_views, render
 from volcap_fusion.sequence import SequenceWriter, glb_bytes, read_glb, read_manifest, read_ply
-from volcap_fusion.tsdf import CameraView, FusionConfig, Rectifier, TsdfFusion, convergence_point
+from volcap_fusion.tsdf import (
+    CameraView,
+    FusionConfig,
+    Rectifier,
+    TsdfFusion,
+    convergence_point,
+    effective_weight_threshold,
+)
 
 RADIUS = 0.3
 COLOR = (200, 120, 40)
@@ -51,6 +58,26 @@ def test_fused_sphere_is_accurate_and_colored():
     # the ring of cameras sees the whole equator band: vertices all the way round
     azimuth = np.degrees(np.arctan2(model.vertices[:, 2], model.vertices[:, 0]))
     assert np.histogram(azimuth, bins=36, range=(-180, 180))[0].min() > 1500      # measured 2145
+
+
+def test_one_camera_still_gives_a_mesh():
+    """A voxel one camera saw has weight 1: the threshold is capped below the cameras fused."""
+    cfg = FusionConfig(voxel_size=0.01, box_center=(0.0, 0.0, 0.0))
+    assert cfg.weight_threshold == 1.0
+    model = TsdfFusion(cfg).fuse([sphere_view('cam0', 0.0)])
+    assert len(model.triangles) > 500
+    r = np.linalg.norm(model.vertices, axis=1)
+    assert np.median(np.abs(r - RADIUS)) < 0.005
+    # with more cameras the default still asks for two observations
+    assert effective_weight_threshold(1.0, 1) == 0.0 and effective_weight_threshold(1.0, 8) == 1.0
+
+
+def test_an_empty_stage_is_an_empty_model_not_an_error():
+    views = [sphere_view(f'cam{k}', k * np.pi / 2) for k in range(4)]
+    empty = [CameraView(v.name, np.zeros_like(v.depth_mm), v.depth_model, v.color, v.color_model, v.T_world_camera)
+             for v in views]
+    model = TsdfFusion(FusionConfig(voxel_size=0.01)).fuse(empty)
+    assert len(model.vertices) == 0 and len(model.triangles) == 0 and model.cameras == [v.name for v in views]
 
 
 def test_lens_distortion_is_taken_into_account():
@@ -180,8 +207,8 @@ def test_bad_views_are_refused_with_the_reason():
         CameraView('x', v.depth_mm, v.depth_model, v.color[:10], v.color_model, v.T_world_camera)
     with pytest.raises(ValueError, match='finite'):
         CameraView('x', v.depth_mm, v.depth_model, v.color, v.color_model, np.full((4, 4), np.nan))
-    with pytest.raises(ValueError, match='no depth'):
-        TsdfFusion(FusionConfig(box_center=(5.0, 5.0, 5.0), box_size=(0.1, 0.1, 0.1))).fuse([v])
+    # nothing inside the capture box is an empty model (an empty stage), not an error
+    assert len(TsdfFusion(FusionConfig(box_center=(5.0, 5.0, 5.0), box_size=(0.1, 0.1, 0.1))).fuse([v]).vertices) == 0
     with pytest.raises(ValueError, match='voxel_size'):
         FusionConfig(voxel_size=0.5).validate()
     with pytest.raises(ValueError, match='no camera'):

@@ -4,6 +4,11 @@ player as the frame source instead of camera drivers.
 
     ros2 launch volcap_bringup volcap.launch.py calibration:=/rig/calibration.yaml \\
         cameras:=8 output_dir:=/captures/take1 [bag:=/captures/studio] [voxel_size:=0.006]
+    ros2 launch volcap_bringup volcap.launch.py driver:=azure_kinect registered:=true \\
+        color_format:=jpeg calibration:=/rig/calibration.yaml
+
+``driver`` remaps every camera's topics onto a vendor driver's running in ``cam0``..``camN-1``
+(docs/driver.md, "On a rig"); the drivers' ``/tf_static`` gives the depth-to-colour extrinsic.
 
 The node list comes from ``volcap_bringup.graph.rig_graph``, the one `volcap run` starts.
 """
@@ -25,6 +30,11 @@ ARGUMENTS = {
     'depth_width': ('0', 'cleaned depth width (0: the colour width, the depth_filter default)'),
     'depth_height': ('0', 'cleaned depth height (0: the colour height)'),
     'device': ('auto', 'fusion device: auto, CPU:0 or CUDA:0'),
+    'driver': ('volcap', 'whose topics the cameras publish: volcap, azure_kinect or orbbec'),
+    'registered': ('false', 'the driver registers depth to colour (Azure Kinect depth_to_rgb, Orbbec '
+                   'depth_registration)'),
+    'color_format': ('raw', 'colour as raw images or jpeg (CompressedImage on .../image_raw/compressed)'),
+    'rig_file': ('', 'rig description YAML (`volcap rig`) instead of /tf_static for the depth-to-colour extrinsic'),
 }
 
 
@@ -38,10 +48,16 @@ def _nodes(context):
     depth_size = {k: int(arg[a]) for k, a in (('output_width', 'depth_width'), ('output_height', 'depth_height'))
                   if int(arg[a])}
     fusion = {'voxel_size': float(arg['voxel_size']), 'output_dir': arg['output_dir'], 'device': arg['device']}
-    graph = rig_graph(cameras, source, {c: depth_size for c in cameras}, {}, fusion,
-                      calibration_service={'output': arg['calibration']})
+    # Only what differs from the nodes' defaults, so their own defaults stay in one place.
+    inputs = {**({'color_transport': 'compressed'} if arg['color_format'] == 'jpeg' else {}),
+              **({'rig_file': arg['rig_file']} if arg['rig_file'] else {})}
+    graph = rig_graph(cameras, source, {c: {**depth_size, **inputs} for c in cameras},
+                      {'color_transport': 'compressed'} if arg['color_format'] == 'jpeg' else {}, fusion,
+                      calibration_service={'output': arg['calibration'], **inputs}, driver=arg['driver'],
+                      registered=arg['registered'].lower() in ('true', '1', 'yes'))
     return [Node(package=package, executable=executable, namespace=namespace or None, parameters=[params],
-                 output='screen') for package, executable, namespace, params in graph]
+                 remappings=list(remaps.items()), output='screen')
+            for package, executable, namespace, params, remaps in graph]
 
 
 def generate_launch_description():

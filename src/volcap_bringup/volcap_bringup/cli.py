@@ -2,6 +2,8 @@
 
     volcap synth --out DIR [--cameras 8] [--frames N] [--board-poses K] [--scene NAME] [--seed S]
     volcap import-k4a MKV --out DIR
+    volcap rig --k4a cam0=calibration.json [--orbbec ...] [--bag BAG] --out rig.yaml
+    volcap monitor --cameras 8 [--driver azure_kinect] [--seconds S] [--json OUT.json]
     volcap info BAG
     volcap eval depth BAG [--json OUT.json] [--figures DIR] [--frames N]
     volcap eval registration BAG [--out overlay.png] [--json OUT.json]
@@ -26,7 +28,7 @@ from pathlib import Path
 
 from volcap_core import transport
 
-from . import calib_cli, color_cli, fusion_cli
+from . import calib_cli, color_cli, fusion_cli, rig_cli
 
 
 def cmd_synth(args) -> int:
@@ -268,6 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     er.add_argument('--json', help='write the measurements here')
     er.set_defaults(func=cmd_eval_registration)
 
+    rig_cli.add_parsers(sub)
     calib_cli.add_parsers(sub, esub)
     color_cli.add_parsers(sub, esub)
     fusion_cli.add_parsers(sub, esub)

@@ -33,14 +33,17 @@ def ros_args(params: dict) -> list[str]:
 
 
 def start_node(package: str, executable: str, params: dict | None = None, env: dict | None = None,
-               namespace: str = '', **popen) -> subprocess.Popen:
+               namespace: str = '', remaps: dict[str, str] | None = None, **popen) -> subprocess.Popen:
     """Run a node in its own process (``python -m`` its module, with this interpreter),
-    optionally in a namespace (``-r __ns:=/cam0``, as a launch file does)."""
+    optionally in a namespace (``-r __ns:=/cam0``, as a launch file does) and with topic remaps
+    (``-r color/image_raw:=rgb/image_raw``, as onto a vendor driver's topics)."""
     module, _ = NODES[(package, executable)]
     full_env = dict(os.environ)
     full_env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     full_env.update(env or {})
     args = ros_args(params or {}) + (['-r', f'__ns:=/{namespace.strip("/")}'] if namespace else [])
+    for source, target in (remaps or {}).items():
+        args += ['-r', f'{source}:={target}']
     return subprocess.Popen([sys.executable, '-m', module, *args], env=full_env, **popen)
 
 
@@ -56,12 +59,15 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
     return proc.returncode
 
 
-def compose(package: str, executable: str, namespace: str = '', params: dict | None = None, **node_options):
+def compose(package: str, executable: str, namespace: str = '', params: dict | None = None,
+            remaps: dict[str, str] | None = None, **node_options):
     """The node instantiated in this process (rclpy initialised), as a composed graph hosts it."""
     from importlib import import_module
 
     from rclpy.parameter import Parameter
     module, cls = NODES[(package, executable)]
     overrides = [Parameter(k, value=v) for k, v in (params or {}).items()]
+    if remaps:
+        node_options['cli_args'] = ['--ros-args'] + [a for k, v in remaps.items() for a in ('-r', f'{k}:={v}')]
     return getattr(import_module(module), cls)(namespace=namespace or None, parameter_overrides=overrides,
                                                **node_options)

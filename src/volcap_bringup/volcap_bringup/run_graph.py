@@ -17,7 +17,7 @@ import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from sensor_msgs.msg import Image, PointCloud2
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 from tqdm import tqdm
 from visualization_msgs.msg import Marker
@@ -27,27 +27,28 @@ from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.conversions import stamp_to_ns
 from volcap_core.files import write_json
-from volcap_core.frames import read_rig
+from volcap_core.frames import camera_topics, read_rig
 from volcap_core.rig import Rig
-from volcap_core.sync import SYNC_TOLERANCE_NS
+from volcap_core.sync import DEFAULT_PERIOD_NS, tolerance_for_period
 from volcap_driver.playback import cdr_stamp_ns
 from volcap_fusion import VOXEL_SIZE
 
-from .graph import rig_graph
+from .graph import NodeSpec, rig_graph, stream_remaps
 from .processes import compose, start_node, stop
 
 
 class RendererProbe(Node):
     """Receives the fused output as a renderer would and times it."""
 
-    def __init__(self, camera: str, calibration: Calibration, **node_options):
+    def __init__(self, color_topic: str, calibration: Calibration, **node_options):
+        """``color_topic``: the first camera's colour as the bag holds it (Image or JPEG)."""
         super().__init__('volcap_renderer_probe', **node_options)
         self.entered: dict[int, float] = {}      # stamp -> wall time its first colour image arrived here
         self.meshes: dict[int, tuple[float, int]] = {}    # stamp -> (arrival, marker bytes)
         self.clouds: dict[int, tuple[float, int]] = {}    # stamp -> (arrival, points)
         self.calibration_pub = self.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
         self.calibration_pub.publish(String(data=calibration.to_yaml()))
-        self.create_subscription(Image, topics.camera_topic(camera, topics.COLOR_IMAGE),
+        self.create_subscription(CompressedImage if color_topic.endswith('/compressed') else Image, color_topic,
                                  lambda data: self.entered.setdefault(cdr_stamp_ns(data), time.time()),
                                  qos.SENSOR, raw=True)
         self.create_subscription(Marker, '/' + topics.MESH, self._on_mesh, qos.EVERY_FRAME, raw=True)
@@ -65,7 +66,7 @@ class RendererProbe(Node):
         latency = []
         for stamp, (arrival, _) in self.meshes.items():
             k = int(np.argmin(np.abs(entered - stamp))) if entered.size else -1
-            if k >= 0 and abs(int(entered[k]) - stamp) <= SYNC_TOLERANCE_NS:
+            if k >= 0 and abs(int(entered[k]) - stamp) <= tolerance_for_period(DEFAULT_PERIOD_NS):
                 latency.append((arrival - self.entered[int(entered[k])]) * 1000)
         arrivals = sorted(t for t, _ in self.meshes.values())
         rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) > 2 else None
@@ -91,22 +92,26 @@ class RunConfig:
     progress: bool = True
 
 
-def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str]
-                     ) -> list[tuple[str, str, str, dict]]:
-    """(package, executable, namespace, parameters) of every node of the graph."""
+def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str],
+                     layout: dict[str, dict[str, str]]) -> list[NodeSpec]:
+    """(package, executable, namespace, parameters, remaps) of every node of the graph."""
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True,
               'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
     player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,
               'exit_when_done': not cfg.composed}
-    filters = {c: {'reliable': True} for c in cameras}
+    # The nodes sit on whatever topics the bag holds (volcap's or a vendor driver's), as on a rig.
+    maps = {c: stream_remaps(c, layout[c]) for c in cameras}
+    filters = {c: {'reliable': True, **maps[c][1]} for c in cameras}
     if not cfg.full_depth:
         # Half-size clean depth puts a 6 mm pixel footprint under 4 mm voxels (2.7 mm accuracy
         # on the demo bag, 1.3 mm at full size), for 5 ms less cleaning per camera.
         for c in cameras:
             color = rig.camera(c).color
             filters[c].update(output_width=color.width // 2, output_height=color.height // 2)
-    return rig_graph(cameras, ('volcap_driver', 'bag_player', player), filters, {'reliable': True}, fusion)
+    corrector = {'reliable': True, **maps[cameras[0]][1]}
+    return rig_graph(cameras, ('volcap_driver', 'bag_player', player), filters, corrector, fusion,
+                     remaps={c: maps[c][0] for c in cameras})
 
 
 def run_graph(cfg: RunConfig) -> dict:
@@ -116,7 +121,8 @@ def run_graph(cfg: RunConfig) -> dict:
     calibration = Calibration.load(calibration_path)
     with BagReader(bag) as reader:
         rig = read_rig(reader)
-        capture_sets = _capture_sets(reader, rig.names[0])
+        layout = camera_topics(reader, rig.names)
+        capture_sets = _capture_sets(reader, layout[rig.names[0]]['color'])
         duration = (reader.end_ns - reader.start_ns) / 1e9
     cameras = [c for c in rig.names if c in calibration.cameras]
     if not cameras:
@@ -124,14 +130,12 @@ def run_graph(cfg: RunConfig) -> dict:
     frames_dir = out / 'frames'
     if frames_dir.exists() and any(frames_dir.iterdir()):
         raise FileExistsError(f'{frames_dir} already holds a sequence; choose another --out')
-    played = [topics.camera_topic(c, t) for c in cameras
-              for t in (topics.COLOR_IMAGE, topics.COLOR_INFO, topics.DEPTH_IMAGE, topics.DEPTH_INFO)]
-    played += [topics.RIG, topics.PHASE]
-    nodes = graph_parameters(bag, rig, cameras, frames_dir, cfg, played)
+    played = [t for c in cameras for t in layout[c].values()] + [topics.RIG, topics.PHASE, topics.TF_STATIC]
+    nodes = graph_parameters(bag, rig, cameras, frames_dir, cfg, played, layout)
     transport.configure()
     rclpy.init()
     executor = SingleThreadedExecutor()
-    probe = RendererProbe(cameras[0], calibration)
+    probe = RendererProbe(layout[cameras[0]]['color'], calibration)
     executor.add_node(probe)
     procs, hosted = [], []
     t_start = time.monotonic()
@@ -143,8 +147,8 @@ def run_graph(cfg: RunConfig) -> dict:
             for node in hosted:
                 executor.add_node(node)
         else:
-            procs = [start_node(pkg, exe, params, namespace=ns) for pkg, exe, ns, params in graph]
-        _wait_until_subscribed(executor, probe, cameras, timeout=120.0)
+            procs = [start_node(pkg, exe, params, namespace=ns, remaps=remaps) for pkg, exe, ns, params, remaps in graph]
+        _wait_until_subscribed(executor, probe, cameras, layout, timeout=120.0)
         if cfg.composed:
             player = compose(*player_node)
             executor.add_node(player)
@@ -153,7 +157,8 @@ def run_graph(cfg: RunConfig) -> dict:
             def playing():
                 return player.playing
         else:
-            procs.insert(0, start_node(*player_node[:2], player_node[3], namespace=player_node[2]))
+            procs.insert(0, start_node(*player_node[:2], player_node[3], namespace=player_node[2],
+                                       remaps=player_node[4]))
 
             def playing():
                 return procs[0].poll() is None
@@ -187,15 +192,15 @@ def run_graph(cfg: RunConfig) -> dict:
     return {'mode': 'composed' if cfg.composed else 'processes', 'cameras': cameras,
             'capture_frame_sets_in_bag': capture_sets, 'playback_rate': cfg.rate, 'voxel_size': cfg.voxel_size,
             'wall_s': time.monotonic() - t_start, 'probe': summary,
-            'node_exit_codes': {f'{exe}{"/" + ns if ns else ""}': c for (_, exe, ns, _), c in zip(nodes, codes)}}
+            'node_exit_codes': {f'{exe}{"/" + ns if ns else ""}': c for (_, exe, ns, _, _), c in zip(nodes, codes)}}
 
 
-def _capture_sets(reader: BagReader, camera: str) -> int:
-    """Frame sets the fusion will fuse: ``camera``'s colour images in the capture phase (all
+def _capture_sets(reader: BagReader, color_topic: str) -> int:
+    """Frame sets the fusion will fuse: one camera's colour images in the capture phase (all
     of them when the bag announces no phase)."""
     changes = sorted((m.stamp_ns, topics.parse_phase(m.decode().data))
                      for m in reader.messages([topics.PHASE]))
-    stamps = [m.stamp_ns for m in reader.messages([topics.camera_topic(camera, topics.COLOR_IMAGE)])]
+    stamps = [m.stamp_ns for m in reader.messages([color_topic])]
     if not changes:
         return len(stamps)
     starts = np.array([s for s, _ in changes])
@@ -204,12 +209,12 @@ def _capture_sets(reader: BagReader, camera: str) -> int:
     return sum(1 for k in at if k >= 0 and phases[k] == topics.CAPTURE)
 
 
-def _wait_until_subscribed(executor, probe: Node, cameras: list[str], timeout: float) -> None:
+def _wait_until_subscribed(executor, probe: Node, cameras: list[str], layout: dict, timeout: float) -> None:
     """Until every camera's raw colour has its filter and corrector (and, for the first camera,
     the probe), its raw depth a filter, and its cleaned depth and corrected colour the fusion."""
     def wanted(cam):
-        return {topics.camera_topic(cam, topics.COLOR_IMAGE): 2 + (cam == cameras[0]),
-                topics.camera_topic(cam, topics.DEPTH_IMAGE): 1,
+        return {layout[cam]['color']: 2 + (cam == cameras[0]),
+                layout[cam]['depth']: 1,
                 topics.camera_topic(cam, topics.DEPTH_CLEAN): 1,
                 topics.camera_topic(cam, topics.COLOR_CORRECTED): 1}
     counts = {'/' + t: n for cam in cameras for t, n in wanted(cam).items()}

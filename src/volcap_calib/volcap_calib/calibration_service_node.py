@@ -2,14 +2,17 @@
 
     ros2 run volcap_calib calibration_service --ros-args -p output:=/rig/calibration.yaml
 
-Listens to every camera of the rig (``/volcap/rig``; ``camN/color/image_raw``,
+Listens to every camera of the rig (``camN/color/image_raw`` or, with
+``color_transport:=compressed``, ``camN/color/image_raw/compressed``;
 ``camN/color/camera_info``, ``camN/depth/image_raw``, ``camN/depth/camera_info``) while the
-board is moved (reliable subscriptions: a board view lost in transport is lost accuracy),
-detecting it in a worker thread (a bounded drop-oldest queue keeps the
+board is moved. The rig is the ``rig_file`` parameter, else ``/volcap/rig`` (bags), else
+assembled from the cameras' camera_info and the vendor drivers' ``/tf_static`` (registered depth
+needs no transform). Subscriptions are reliable (a board view lost in transport is lost
+accuracy); the board is detected in a worker thread (a bounded drop-oldest queue keeps the
 subscriptions free). ``volcap/calibrate`` (std_srvs/Trigger) solves with every view gathered so
 far, writes ``output`` atomically and publishes the result latched on ``volcap/calibration``
-(YAML) and ``volcap/camera_poses`` (PoseArray, world = reference colour frame). On failure
-the response names the cameras and why, and the previous file and topics stay as they were.
+(YAML) and ``volcap/camera_poses`` (PoseArray, world = reference colour frame). On failure the
+response names the cameras and why, and the previous file and topics stay as they were.
 """
 from __future__ import annotations
 
@@ -20,24 +23,28 @@ from pathlib import Path
 import yaml
 from geometry_msgs.msg import PoseArray
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
 from volcap_core.conversions import (
     MessageConversionError,
     camera_info_to_model,
-    color_to_rgb,
+    color_message_to_rgb,
     depth_to_metres,
     make_header,
     matrix_to_pose,
     stamp_to_ns,
+    tf_message_to_transforms,
 )
-from volcap_core.rig import Rig
+from volcap_core.frames import depth_to_color
+from volcap_core.rig import Rig, RigCamera
 from volcap_core.ros import Diagnostics, declare_config, run_node
-from volcap_core.sync import FrameSetSynchronizer
+from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
+from volcap_core.tf import StaticTransforms
 from volcap_core.worker import DropOldestWorker
 
 from .board import BoardConfig
@@ -45,7 +52,7 @@ from .calibrate import CameraFrame
 from .extrinsics import CalibrationError
 from .session import CalibrationServiceConfig, CalibrationSession
 
-STREAMS = {'color': topics.COLOR_IMAGE, 'depth': topics.DEPTH_IMAGE}
+STREAMS = ('color', 'depth')
 
 
 class CalibrationService(Node):
@@ -59,25 +66,34 @@ class CalibrationService(Node):
         self.diagnostics = Diagnostics(self, 'calibration service')
         # Frame sets are gathered from the start (a bag may play its images before the latched
         # rig description arrives); detection waits for the rig.
-        self.sync = FrameSetSynchronizer(self.cameras, tuple(STREAMS), tolerance_ns=int(cfg.sync_tolerance_ms * 1e6),
+        self.sync = FrameSetSynchronizer(self.cameras, STREAMS,
+                                         tolerance_ns=tolerance_ns_from_ms(cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
         self.infos: dict[tuple[str, str], CameraInfo] = {}
+        self.static_transforms = StaticTransforms()
+        self.rig_source = 'camera_info + /tf_static'   # until a rig file or /volcap/rig says otherwise
         self.phase = None
         self.worker = DropOldestWorker(self._detect, cfg.queue_size, 'board-detection',
                                        on_error=self._on_detection_error, ready=lambda: self.session.ready)
 
         self.pub_calibration = self.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
         self.pub_poses = self.create_publisher(PoseArray, '/' + topics.CAMERA_POSES, qos.LATCHED)
+        if cfg.rig_file:
+            self._set_rig(cfg.rig_file, lambda: Rig.from_yaml(Path(cfg.rig_file).read_text()))
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
+        self.create_subscription(TFMessage, '/' + topics.TF_STATIC, self._on_tf_static, qos.TF_STATIC)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         self.create_service(Trigger, '/' + topics.CALIBRATE, self._on_calibrate)
+        color_type, color_topic = (CompressedImage, topics.COLOR_COMPRESSED) if cfg.color_transport == 'compressed' \
+            else (Image, topics.COLOR_IMAGE)
         for cam in self.cameras:
-            for stream, rel in STREAMS.items():
-                self.create_subscription(Image, topics.camera_topic(cam, rel),
-                                         lambda m, c=cam, s=stream: self._on_image(m, c, s), qos.EVERY_FRAME)
+            self.create_subscription(color_type, topics.camera_topic(cam, color_topic),
+                                     lambda m, c=cam: self._on_image(m, c, 'color'), qos.EVERY_FRAME)
+            self.create_subscription(Image, topics.camera_topic(cam, topics.DEPTH_IMAGE),
+                                     lambda m, c=cam: self._on_image(m, c, 'depth'), qos.EVERY_FRAME)
             for stream, rel in (('color', topics.COLOR_INFO), ('depth', topics.DEPTH_INFO)):
                 self.create_subscription(CameraInfo, topics.camera_topic(cam, rel),
-                                         lambda m, c=cam, s=stream: self.infos.__setitem__((c, s), m), qos.EVERY_FRAME)
+                                         lambda m, c=cam, s=stream: self._on_info(m, c, s), qos.EVERY_FRAME)
         self.create_timer(1.0, self._report)
         self.create_timer(0.2, lambda: self._enqueue(self.sync.poll(time.monotonic_ns())))
         output = Path(cfg.output)
@@ -94,21 +110,65 @@ class CalibrationService(Node):
 
     # inputs -----------------------------------------------------------------------------------
     def _on_rig(self, msg: String) -> None:
+        if self.rig_source.startswith('rig file'):
+            return   # the operator's file wins over a rig replayed from a bag
+        self._set_rig(f'/{topics.RIG}', lambda: Rig.from_yaml(msg.data))
+
+    def _set_rig(self, source: str, load) -> None:
         try:
-            warning = self.session.set_rig(Rig.from_yaml(msg.data))
-        except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
-            self.diagnostics.report('error', f'unusable rig description: {e}')
+            warning = self.session.set_rig(load())
+        except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError) as e:
+            self.diagnostics.report('error', f'unusable rig description from {source}: {e}')
             return
+        self.rig_source = source if source.startswith('/') or source.startswith('camera_info') else f'rig file {source}'
         self.worker.poke()
         if warning:
             self.diagnostics.report('warn', warning)
         names = self.session.rig.names
-        self.get_logger().info(f'calibrating {len(names)} cameras: {", ".join(names)}')
+        self.get_logger().info(f'calibrating {len(names)} cameras ({self.rig_source}): {", ".join(names)}')
+
+    def _on_tf_static(self, msg: TFMessage) -> None:
+        try:
+            for parent, child, T in tf_message_to_transforms(msg):
+                self.static_transforms.add(parent, child, T)
+        except ValueError as e:
+            self.diagnostics.report('warn', f'unusable /tf_static transform: {e}')
+
+    def _assemble_rig(self) -> None:
+        """Without a rig file or /volcap/rig: the cameras whose camera_info (and, for native depth,
+        /tf_static extrinsic) have arrived. The rig grows as cameras appear."""
+        if not self.rig_source.startswith('camera_info'):
+            return
+        cameras, waiting = [], []
+        for cam in self.cameras:
+            info_c, info_d = self.infos.get((cam, 'color')), self.infos.get((cam, 'depth'))
+            if info_c is None or info_d is None:
+                continue
+            T = depth_to_color(self.static_transforms, info_c.header.frame_id, info_d.header.frame_id,
+                               self.session.cfg.tf_prefix)
+            if T is None:
+                waiting.append(f'{cam} ({info_d.header.frame_id} -> {info_c.header.frame_id})')
+                continue
+            try:
+                cameras.append(RigCamera(cam, camera_info_to_model(info_c), camera_info_to_model(info_d), T))
+            except (MessageConversionError, ValueError) as e:
+                waiting.append(f'{cam} ({e})')
+        if waiting:
+            self.diagnostics.report('warn', 'no depth-to-colour extrinsic on /tf_static yet for ' + ', '.join(waiting))
+        current = self.session.rig.names if self.session.rig else []
+        if cameras and [c.name for c in cameras] != current and len(cameras) >= len(current):
+            self._set_rig('camera_info + /tf_static', lambda: Rig(cameras, 'tf_static'))
+
+    def _on_info(self, msg: CameraInfo, camera: str, stream: str) -> None:
+        known = (camera, stream) in self.infos
+        self.infos[(camera, stream)] = msg
+        if not known:
+            self._assemble_rig()
 
     def _on_phase(self, msg: String) -> None:
         self.phase = topics.parse_phase(msg.data)
 
-    def _on_image(self, msg: Image, camera: str, stream: str) -> None:
+    def _on_image(self, msg: Image | CompressedImage, camera: str, stream: str) -> None:
         if self.session.collecting(self.phase):
             self._enqueue(self.sync.add(camera, stamp_to_ns(msg.header.stamp), msg, stream=stream,
                                         now_ns=time.monotonic_ns()))
@@ -127,7 +187,7 @@ class CalibrationService(Node):
                 continue
             has_depth = depth is not None and info_d is not None
             try:
-                frames[cam] = CameraFrame(color_to_rgb(color), camera_info_to_model(info_c),
+                frames[cam] = CameraFrame(color_message_to_rgb(color), camera_info_to_model(info_c),
                                           depth_to_metres(depth) if has_depth else None,
                                           camera_info_to_model(info_d) if has_depth else None)
             except (MessageConversionError, ValueError) as e:
@@ -143,7 +203,9 @@ class CalibrationService(Node):
     def _on_calibrate(self, request, response):
         if not self.session.ready:
             response.success = False
-            response.message = f'no rig description on /{topics.RIG} yet ({self.worker.pending} frame sets waiting)'
+            response.message = (f'no cameras yet: waiting for camera_info on {", ".join(self.cameras)} (and the '
+                                f'depth-to-colour extrinsic on /tf_static, a rig_file or /{topics.RIG}); '
+                                f'{self.worker.pending} frame sets waiting')
             return response
         self._enqueue(self.sync.flush())
         timeout = self.session.cfg.drain_timeout_s
@@ -173,6 +235,7 @@ class CalibrationService(Node):
         self.pub_poses.publish(poses)
 
     def _report(self) -> None:
+        self._assemble_rig()
         if not self.session.ready:
             return
         observations, views = self.session.counts()

@@ -16,7 +16,7 @@ from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.files import atomic_write
 from volcap_core.frames import frame_sets, read_rig
-from volcap_core.topics import CALIBRATION_PHASE, CAPTURE
+from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, PHASE
 
 from .board import BoardConfig
 from .calibrate import CalibrationConfig, CalibrationOutcome, Calibrator, CameraFrame
@@ -32,9 +32,11 @@ def load_board(path: str | Path | None) -> BoardConfig:
 
 def calibrator_from_bag(bag: str | Path, board: BoardConfig, cfg: CalibrationConfig, all_frames: bool = False,
                         progress: bool = True) -> Calibrator:
-    """A Calibrator fed with every frame set of the bag's calibration phase (or of the whole bag)."""
+    """A Calibrator fed with every frame set of the bag's calibration phase (or of the whole bag,
+    also when the bag announces no phase: a plain recording of the board)."""
     with BagReader(bag) as reader:
         rig = read_rig(reader)
+        all_frames = all_frames or PHASE not in reader.topics
     calibrator = Calibrator(rig, board, cfg)
     sets = frame_sets(bag, phases=None if all_frames else (CALIBRATION_PHASE,))
     bar = tqdm(sets, desc='board views', unit='set', disable=not progress)

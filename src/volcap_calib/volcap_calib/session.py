@@ -11,7 +11,6 @@ from pathlib import Path
 from volcap_core.calibration import Calibration
 from volcap_core.rig import Rig
 from volcap_core.settings import setting
-from volcap_core.sync import SYNC_TOLERANCE_MS
 from volcap_core.topics import CALIBRATION_PHASE, camera_names
 
 from .board import BoardConfig
@@ -25,6 +24,13 @@ class CalibrationServiceConfig:
     output: str = setting('calibration.yaml', 'calibration file written on success')
     cameras: tuple[str, ...] = setting(tuple(camera_names(8)), 'camera namespaces to listen to (the rig '
                                        'description says which of them are calibrated)', read_only=True)
+    rig_file: str = setting('', 'rig description YAML (`volcap rig`; empty: /volcap/rig, else the cameras\' '
+                            'camera_info with /tf_static)', read_only=True)
+    tf_prefix: str = setting('', 'prepended to the camera_info frame ids when looking them up on /tf_static',
+                             read_only=True)
+    color_transport: str = setting('raw', 'colour as sensor_msgs/Image on color/image_raw (raw) or JPEG '
+                                   'CompressedImage on color/image_raw/compressed', choices=('raw', 'compressed'),
+                                   read_only=True)
     board_file: str = setting('', 'board YAML (empty: the volcap board)', read_only=True)
     reference: str = setting('', 'camera whose colour frame is the world (empty: the first)')
     collect_phase: str = setting(CALIBRATION_PHASE, 'gather frame sets only in this announced phase '
@@ -36,7 +42,8 @@ class CalibrationServiceConfig:
                               read_only=True)
     drain_timeout_s: float = setting(60.0, 'how long a calibrate call waits for queued frame sets to be detected',
                                      0.0, 3600.0)
-    sync_tolerance_ms: float = setting(SYNC_TOLERANCE_MS, 'stamp tolerance of a frame set', 0.0, 100.0,
+    sync_tolerance_ms: float = setting(0.0, 'stamp tolerance of a frame set, ms (0: just under half the frame '
+                                       'period the stamps show)', 0.0, 100.0,
                                        read_only=True)
 
 

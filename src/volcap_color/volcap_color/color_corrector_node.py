@@ -2,8 +2,11 @@
 
     ros2 run volcap_color color_corrector --ros-args -r __ns:=/cam0
 
-Subscribes ``color/image_raw`` (rgb8, bgr8, rgba8 or bgra8) and the latched
-``/volcap/calibration``; publishes ``color/image_corrected`` (rgb8, same size, same header). A new
+Subscribes ``color/image_raw`` (rgb8, bgr8, rgba8 or bgra8; or JPEG ``color/image_raw/compressed``
+with ``color_transport:=compressed``), ``color/camera_info`` and the latched
+``/volcap/calibration``; publishes ``color/image_corrected`` (rgb8, same size, same header) and,
+with each image, its ``color/image_corrected/camera_info`` (so a consumer needs only this
+camera's relative topics). A new
 calibration is picked up as it is published, without a restart. Until a calibration with a
 colour model for this camera arrives, images are passed through unchanged (``passthrough``,
 default) or dropped; either way ``/volcap/diagnostics`` says so.
@@ -19,11 +22,11 @@ import sys
 from dataclasses import dataclass
 
 from rclpy.node import Node
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 
 from volcap_core import qos, topics
-from volcap_core.conversions import MessageConversionError, color_to_rgb, numpy_to_image, stamp_to_ns
+from volcap_core.conversions import MessageConversionError, color_message_to_rgb, numpy_to_image, stamp_to_ns
 from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.settings import setting
 
@@ -38,7 +41,11 @@ class ColorCorrectorConfig:
                                 'them)')
     neural_models: str = setting('', 'volcap harmonise output folder: apply its neural mapping for this camera '
                                  'instead of the calibration\'s colour model ("" = off)', read_only=True)
-    reliable: bool = setting(False, 'subscribe reliably (offline replay: lose no frame)', read_only=True)
+    reliable: bool = setting(False, 'subscribe reliably with a deeper queue (offline replay: lose no frame)',
+                             read_only=True)
+    color_transport: str = setting('raw', 'colour as sensor_msgs/Image on color/image_raw (raw) or JPEG '
+                                   'CompressedImage on color/image_raw/compressed', choices=('raw', 'compressed'),
+                                   read_only=True)
 
 
 class ColorCorrector(Node):
@@ -55,10 +62,16 @@ class ColorCorrector(Node):
                 self.get_logger().info(message)
             else:
                 self.diagnostics.report('error', message)
+        self.info: CameraInfo | None = None
         self.pub = self.create_publisher(Image, topics.COLOR_CORRECTED, qos.DRIVER)
+        self.pub_info = self.create_publisher(CameraInfo, topics.COLOR_CORRECTED_INFO, qos.DRIVER)
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
-        inputs = qos.EVERY_FRAME if self.cfg.reliable else qos.SENSOR
-        self.create_subscription(Image, topics.COLOR_IMAGE, self._on_image, inputs)
+        inputs = qos.EVERY_FRAME if self.cfg.reliable else qos.CAMERA
+        self.create_subscription(CameraInfo, topics.COLOR_INFO, self._on_info, inputs)
+        if self.cfg.color_transport == 'compressed':
+            self.create_subscription(CompressedImage, topics.COLOR_COMPRESSED, self._on_image, inputs)
+        else:
+            self.create_subscription(Image, topics.COLOR_IMAGE, self._on_image, inputs)
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'color_corrector started for {camera}')
 
@@ -73,15 +86,23 @@ class ColorCorrector(Node):
         else:
             self.diagnostics.report('warn', message)
 
-    def _on_image(self, msg: Image) -> None:
+    def _on_info(self, msg: CameraInfo) -> None:
+        self.info = msg
+
+    def _on_image(self, msg: Image | CompressedImage) -> None:
         try:
-            out = self.correction.apply(color_to_rgb(msg))
+            out = self.correction.apply(color_message_to_rgb(msg))
         except (MessageConversionError, ValueError) as e:
             self.correction.skipped += 1
             self.diagnostics.report('error', f'{self.correction.camera}: image skipped: {e}')
             return
-        if out is not None:
-            self.pub.publish(numpy_to_image(out, 'rgb8', stamp_to_ns(msg.header.stamp), msg.header.frame_id))
+        if out is None:
+            return
+        if self.info is not None:
+            # camera_info first, so a subscriber rarely sees the image before it
+            self.info.header = msg.header
+            self.pub_info.publish(self.info)
+        self.pub.publish(numpy_to_image(out, 'rgb8', stamp_to_ns(msg.header.stamp), msg.header.frame_id))
 
     def _report(self) -> None:
         level, message, values = self.correction.status()

@@ -2,6 +2,10 @@
 
 Messages stay serialised end to end: the writer takes rclpy messages or CDR bytes, the reader
 yields CDR bytes that a player publishes as they are (no decode/encode per frame).
+
+Topic names: the writer stores them fully qualified (``/cam0/color/image_raw``), as
+``ros2 bag record`` does; the reader accepts bags with either form and hands every name out
+relative to the root (``cam0/color/image_raw``), the form volcap's topic constants use.
 """
 from __future__ import annotations
 
@@ -35,6 +39,16 @@ def message_class(msgtype: str):
 def msgtype_of(msg_class) -> str:
     module = msg_class.__module__.split('.')
     return f'{module[0]}/{module[1]}/{msg_class.__name__}'
+
+
+def stored_name(topic: str) -> str:
+    """The fully qualified name a bag stores for a topic."""
+    return '/' + topic.lstrip('/')
+
+
+def relative_name(topic: str) -> str:
+    """A topic name relative to the root namespace (how the reader hands names out)."""
+    return topic.lstrip('/')
 
 
 def _qos(latched: bool, reliable: bool = True) -> Qos:
@@ -77,13 +91,15 @@ class BagWriter:
             raise BagError(f'cannot create bag {self.path}: {e}') from e
 
     def add_topic(self, topic: str, msgtype: str, latched: bool = False, reliable: bool = True) -> None:
+        topic = relative_name(topic)
         if topic in self._connections:
             return
         self._connections[topic] = self._writer.add_connection(
-            topic, msgtype, typestore=self._typestore, offered_qos_profiles=[_qos(latched, reliable)])
+            stored_name(topic), msgtype, typestore=self._typestore, offered_qos_profiles=[_qos(latched, reliable)])
 
     def write(self, topic: str, msg, stamp_ns: int) -> None:
         """Write an rclpy message (its topic added on first use) or CDR bytes (topic added first)."""
+        topic = relative_name(topic)
         if topic not in self._connections:
             if isinstance(msg, (bytes, bytearray, memoryview)):
                 raise BagError(f'add_topic({topic!r}, type) before writing serialised data to it')
@@ -178,7 +194,7 @@ class BagReader:
                     elif isinstance(record, Channel):
                         profiles = yaml.safe_load(record.metadata.get('offered_qos_profiles', '') or '[]') or []
                         latched = any(p.get('durability') in ('transient_local', 1) for p in profiles)
-                        channels[record.id] = (record.topic, schemas.get(record.schema_id, ''), latched)
+                        channels[record.id] = (relative_name(record.topic), schemas.get(record.schema_id, ''), latched)
         except Exception as e:
             raise BagError(f'bag {self.path} is corrupt or truncated after {n} messages: '
                            f'{type(e).__name__}: {e}') from e
@@ -197,7 +213,7 @@ class BagReader:
     def topics(self) -> dict[str, str]:
         if self._reader is None:
             return dict(self._topics)
-        return {c.topic: c.msgtype for c in self._reader.connections}
+        return {relative_name(c.topic): c.msgtype for c in self._reader.connections}
 
     @property
     def latched_topics(self) -> set[str]:
@@ -207,7 +223,7 @@ class BagReader:
         for c in self._reader.connections:
             qos = getattr(c.ext, 'offered_qos_profiles', []) or []
             if any(q.durability == QosDurability.TRANSIENT_LOCAL for q in qos):
-                out.add(c.topic)
+                out.add(relative_name(c.topic))
         return out
 
     @property
@@ -225,7 +241,8 @@ class BagReader:
             return dict(self._counts)
         counts = {}
         for c in self._reader.connections:
-            counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+            name = relative_name(c.topic)
+            counts[name] = counts.get(name, 0) + c.msgcount
         return counts
 
     @property
@@ -234,15 +251,17 @@ class BagReader:
 
     def messages(self, topics: list[str] | None = None, start_ns: int | None = None,
                  stop_ns: int | None = None) -> Iterator[BagMessage]:
+        """Messages in log-time order; ``topics`` in either form (relative or fully qualified)."""
+        topics = None if topics is None else {relative_name(t) for t in topics}
         if self._mcap is not None:
             yield from self._stream_messages(topics, start_ns, stop_ns)
             return
-        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        conns = [c for c in self._reader.connections if topics is None or relative_name(c.topic) in topics]
         n, last = 0, None
         try:
             for conn, stamp, data in self._reader.messages(connections=conns, start=start_ns, stop=stop_ns):
                 n, last = n + 1, stamp
-                yield BagMessage(conn.topic, conn.msgtype, int(stamp), bytes(data))
+                yield BagMessage(relative_name(conn.topic), conn.msgtype, int(stamp), bytes(data))
         except Exception as e:
             where = f'after {n} messages (last stamp {last})' if n else 'before its first message'
             raise BagError(f'bag {self.path} is corrupt or truncated {where}: {type(e).__name__}: {e}') from e

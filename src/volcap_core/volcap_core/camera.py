@@ -31,6 +31,11 @@ class CameraModel:
             raise ValueError(f'focal lengths must be positive, got fx={self.fx} fy={self.fy}')
         if len(self.dist) not in DISTORTION_MODELS:
             raise ValueError(f'expected 5 or 8 distortion coefficients, got {len(self.dist)}')
+        # plain Python numbers (models built from numpy arrays must still serialise to YAML)
+        for name in ('width', 'height'):
+            object.__setattr__(self, name, int(getattr(self, name)))
+        for name in ('fx', 'fy', 'cx', 'cy'):
+            object.__setattr__(self, name, float(getattr(self, name)))
         object.__setattr__(self, 'dist', tuple(float(d) for d in self.dist))
 
     @property

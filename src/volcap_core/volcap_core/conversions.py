@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import sys
 
+import cv2
 import numpy as np
 import pointcloud2
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Pose
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from geometry_msgs.msg import Pose, TransformStamped
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 
 from .camera import DISTORTION_MODELS, CameraModel
 from .poses import from_xyz_quat, to_xyz_quat
@@ -105,6 +107,58 @@ def color_to_rgb(msg: Image) -> np.ndarray:
     if msg.encoding == 'bgra8':
         return arr[:, :, 2::-1]
     raise MessageConversionError(f'colour image expected ({", ".join(COLOR_ENCODINGS)}), got {msg.encoding!r}')
+
+
+def compressed_to_rgb(msg: CompressedImage) -> np.ndarray:
+    """rgb8 (H, W, 3) array of a JPEG or PNG ``CompressedImage`` (the Azure Kinect driver's
+    ``rgb/image_raw/compressed``, image_transport's ``compressed``), decoded by OpenCV."""
+    fmt = msg.format.lower()
+    if 'jpeg' not in fmt and 'jpg' not in fmt and 'png' not in fmt and fmt:
+        raise MessageConversionError(f'compressed colour must be JPEG or PNG, got format {msg.format!r}')
+    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    if buf.size == 0:
+        raise MessageConversionError('empty compressed image')
+    bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise MessageConversionError(f'cannot decode {buf.size}-byte compressed image (format {msg.format!r})')
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def rgb_to_compressed(rgb: np.ndarray, stamp_ns: int = 0, frame_id: str = '', quality: int = 90) -> CompressedImage:
+    """A JPEG ``CompressedImage`` as image_transport's compressed publisher writes it."""
+    ok, data = cv2.imencode('.jpg', cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise MessageConversionError(f'cannot JPEG-encode an image of shape {rgb.shape}')
+    msg = CompressedImage(header=make_header(stamp_ns, frame_id), format='rgb8; jpeg compressed bgr8')
+    msg.data = data.tobytes()
+    return msg
+
+
+def color_message_to_rgb(msg: Image | CompressedImage) -> np.ndarray:
+    """rgb8 array of a raw or compressed colour message."""
+    return compressed_to_rgb(msg) if isinstance(msg, CompressedImage) else color_to_rgb(msg)
+
+
+def tf_message_to_transforms(msg: TFMessage) -> list[tuple[str, str, np.ndarray]]:
+    """(parent, child, T_parent_child) of each transform of a ``/tf_static`` message."""
+    out = []
+    for t in msg.transforms:
+        p, q = t.transform.translation, t.transform.rotation
+        out.append((t.header.frame_id, t.child_frame_id, from_xyz_quat([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])))
+    return out
+
+
+def transforms_to_tf_message(transforms: list[tuple[str, str, np.ndarray]], stamp_ns: int = 0) -> TFMessage:
+    """A ``/tf_static`` message of (parent, child, T_parent_child) triples."""
+    msg = TFMessage()
+    for parent, child, T in transforms:
+        xyz, q = to_xyz_quat(T)
+        t = TransformStamped(header=make_header(stamp_ns, parent), child_frame_id=child)
+        t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = (float(v) for v in xyz)
+        (t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
+         t.transform.rotation.w) = (float(v) for v in q)
+        msg.transforms.append(t)
+    return msg
 
 
 def depth_to_metres(msg: Image) -> np.ndarray:

@@ -1,6 +1,10 @@
 """Rig description: the cameras, their names, intrinsics and factory depth-to-colour extrinsics.
 
-Published as YAML on ``volcap/rig`` and stored in bags, so any node can rebuild it.
+Published as YAML on ``volcap/rig`` and stored in bags, so any node can rebuild it. Also read
+by the nodes from a file (``rig_file``), written by ``volcap rig`` from each camera maker's
+factory data: an Azure Kinect ``calibration.json`` (``k4arecorder``, ``k4a_device_get_raw_calibration``)
+or OrbbecSDK_ROS2's topics as ``ros2 topic echo --once`` prints them (``depth_to_color``,
+``color/camera_info``, ``depth/camera_info``).
 """
 from __future__ import annotations
 
@@ -98,3 +102,39 @@ def rig_camera_from_k4a(calibration: dict | str | Path, name: str, color_mode: s
     return RigCamera(name, camera_from_k4a(color['Intrinsics']['ModelParameters'], K4A_COLOR_MODES[color_mode]),
                      camera_from_k4a(depth['Intrinsics']['ModelParameters'], K4A_DEPTH_MODES[depth_mode]),
                      T_color_depth, serial)
+
+
+def _echoed(text_or_path: str | Path) -> dict:
+    """The first message of ``ros2 topic echo`` output (YAML documents separated by ``---``)."""
+    text = Path(text_or_path).read_text() if isinstance(text_or_path, Path) or '\n' not in str(text_or_path) \
+        else str(text_or_path)
+    for doc in yaml.safe_load_all(text):
+        if isinstance(doc, dict):
+            return doc
+    raise ValueError('no message in the echoed YAML')
+
+
+def camera_model_from_echo(info: dict) -> CameraModel:
+    """CameraModel of a sensor_msgs/CameraInfo as ``ros2 topic echo`` prints it (8 coefficients
+    under plumb_bob, as Orbbec sends them, are OpenCV's rational model)."""
+    try:
+        k = [float(v) for v in info['k']]
+        dist = tuple(float(v) for v in info.get('d') or [0.0] * 5)
+        return CameraModel(int(info['width']), int(info['height']), k[0], k[4], k[2], k[5], dist)
+    except (KeyError, IndexError, TypeError, ValueError) as e:
+        raise ValueError(f'not a camera_info message: {e}') from e
+
+
+def rig_camera_from_orbbec(name: str, extrinsics, color_info, depth_info, serial: str = '') -> RigCamera:
+    """RigCamera from OrbbecSDK_ROS2's ``depth_to_color`` (orbbec_camera_msgs/Extrinsics: row-major
+    rotation, translation in metres, depth to colour) and the two camera_info messages, each as
+    ``ros2 topic echo --once`` writes it (text, a path, or the parsed dict)."""
+    ex, ci, di = (m if isinstance(m, dict) else _echoed(m) for m in (extrinsics, color_info, depth_info))
+    try:
+        R = np.reshape([float(v) for v in ex['rotation']], (3, 3))
+        t = [float(v) for v in ex['translation']]
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f'not an Orbbec depth_to_color extrinsics message: {e}') from e
+    if len(t) != 3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
+        raise ValueError('Orbbec extrinsics need a rotation matrix (9 values) and 3 translation values')
+    return RigCamera(name, camera_model_from_echo(ci), camera_model_from_echo(di), make_transform(R, t), serial)

@@ -89,7 +89,8 @@ def declare_config(node: Node, cls, on_change: Callable | None = None):
 class Diagnostics:
     """Publishes one node's status on ``volcap/diagnostics``: at once on every report, and the
     latest status again every ``period`` seconds (so late subscribers see it). Errors and
-    warnings also go to the log."""
+    warnings also go to the log, once until the message changes (a state reported every second
+    would flood it)."""
 
     def __init__(self, node: Node, name: str, period: float = 1.0):
         self.node = node
@@ -97,13 +98,16 @@ class Diagnostics:
         # Absolute: nodes run inside camera namespaces, diagnostics are rig level.
         self.pub = node.create_publisher(DiagnosticArray, '/' + topics.DIAGNOSTICS, qos.EVENTS)
         self._last = None
+        self._logged = None
         node.create_timer(period, self._republish)
 
     def report(self, level: str, message: str, **values) -> None:
-        if level == 'error':
-            self.node.get_logger().error(message)
-        elif level == 'warn':
-            self.node.get_logger().warning(message)
+        if (level, message) != self._logged:
+            if level == 'error':
+                self.node.get_logger().error(message)
+            elif level == 'warn':
+                self.node.get_logger().warning(message)
+            self._logged = (level, message)
         self._last = diagnostic_status(f'{self.node.get_name()}: {self.name}', level, message, values)
         self._republish()
 

@@ -6,6 +6,10 @@ arrived, or pushed out by ``max_pending`` newer sets, is emitted incomplete with
 (camera, stream) pairs named, so a slow or dead camera never stalls the rest. Memory is bounded:
 at most ``max_pending`` open sets and a short history of emitted stamps (to recognise late
 items, which are counted and dropped rather than opening a new set).
+
+The stamp tolerance is either fixed or, by default, derived from the frame period the stamps
+show: just under half a period, so that the vendor drivers' separately stamped colour and depth
+(8-15 ms apart at 30 fps) still pair while consecutive frames never do.
 """
 from __future__ import annotations
 
@@ -13,9 +17,41 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Hashable, Sequence
 
-# Stamps of one frame set agree within this (hardware-synced cameras agree within ~1 ms).
-SYNC_TOLERANCE_MS = 5.0
-SYNC_TOLERANCE_NS = int(SYNC_TOLERANCE_MS * 1e6)
+import numpy as np
+
+# Until the stamps show the frame period, assume the rig's 30 fps.
+DEFAULT_PERIOD_NS = 33_333_333
+# An automatic tolerance stays this far below half the period (stamp jitter of the next frame).
+PERIOD_MARGIN_NS = 1_000_000
+
+
+def tolerance_for_period(period_ns: int) -> int:
+    """The automatic stamp tolerance for a frame period: just under half of it."""
+    return max(PERIOD_MARGIN_NS, int(period_ns) // 2 - PERIOD_MARGIN_NS)
+
+
+def tolerance_ns_from_ms(ms: float) -> int | None:
+    """A ``sync_tolerance_ms`` setting as the synchroniser takes it (0: automatic)."""
+    return int(ms * 1e6) if ms > 0 else None
+
+
+class PeriodEstimate:
+    """The frame period as the median stamp interval of each (camera, stream) over the last frames;
+    intervals of a second or more (pauses, restarts) are ignored, dropped frames barely move it."""
+
+    def __init__(self, window: int = 64):
+        self._last: dict[Hashable, int] = {}
+        self._intervals: deque[int] = deque(maxlen=window)
+
+    def add(self, key: Hashable, stamp_ns: int) -> None:
+        last = self._last.get(key)
+        self._last[key] = stamp_ns
+        if last is not None and 0 < stamp_ns - last < 1_000_000_000:
+            self._intervals.append(stamp_ns - last)
+
+    @property
+    def period_ns(self) -> int | None:
+        return int(np.median(self._intervals)) if self._intervals else None
 
 
 @dataclass
@@ -50,19 +86,27 @@ class _Pending:
 
 class FrameSetSynchronizer:
     def __init__(self, cameras: Sequence[str], streams: Sequence[Hashable] = (None,),
-                 tolerance_ns: int = SYNC_TOLERANCE_NS, timeout_ns: int = 200_000_000, max_pending: int = 4):
+                 tolerance_ns: int | None = None, timeout_ns: int = 200_000_000, max_pending: int = 4):
+        """``tolerance_ns`` None: derived from the frame period the stamps show."""
         if not cameras:
             raise ValueError('synchroniser needs at least one camera')
-        if tolerance_ns < 0 or timeout_ns <= 0 or max_pending < 1:
+        if (tolerance_ns is not None and tolerance_ns < 0) or timeout_ns <= 0 or max_pending < 1:
             raise ValueError('tolerance must be >= 0, timeout > 0 and max_pending >= 1')
         self.keys = [(c, s) for c in cameras for s in streams]
         self._known = set(self.keys)
-        self.tolerance_ns = int(tolerance_ns)
+        self.fixed_tolerance_ns = None if tolerance_ns is None else int(tolerance_ns)
+        self.period = PeriodEstimate()
         self.timeout_ns = int(timeout_ns)
         self.max_pending = int(max_pending)
         self._pending: list[_Pending] = []
         self._emitted = deque(maxlen=4 * max_pending)
         self.stats = SyncStats()
+
+    @property
+    def tolerance_ns(self) -> int:
+        if self.fixed_tolerance_ns is not None:
+            return self.fixed_tolerance_ns
+        return tolerance_for_period(self.period.period_ns or DEFAULT_PERIOD_NS)
 
     @property
     def pending(self) -> int:
@@ -76,6 +120,7 @@ class FrameSetSynchronizer:
         if key not in self._known:
             self.stats.unknown += 1
             return []
+        self.period.add(key, stamp_ns)
         if any(abs(stamp_ns - s) <= self.tolerance_ns for s in self._emitted):
             self.stats.late += 1
             return []

@@ -4,12 +4,15 @@ import yaml
 
 COLOR_IMAGE = 'color/image_raw'
 COLOR_INFO = 'color/camera_info'
+# image_transport's compressed colour (JPEG from the Azure Kinect driver or Orbbec MJPG)
+COLOR_COMPRESSED = 'color/image_raw/compressed'
 DEPTH_IMAGE = 'depth/image_raw'
 DEPTH_INFO = 'depth/camera_info'
 DEPTH_CLEAN = 'depth/image_clean'
 DEPTH_CLEAN_INFO = 'depth/image_clean/camera_info'
 POINTS = 'points'
 COLOR_CORRECTED = 'color/image_corrected'
+COLOR_CORRECTED_INFO = 'color/image_corrected/camera_info'
 
 RIG = 'volcap/rig'
 PHASE = 'volcap/phase'
@@ -19,6 +22,8 @@ CAMERA_POSES = 'volcap/camera_poses'
 FUSED_POINTS = 'volcap/points'
 MESH = 'volcap/mesh'
 DIAGNOSTICS = 'volcap/diagnostics'
+# The drivers' fixed frames (depth-to-colour extrinsic), as tf2's static broadcaster sends them.
+TF_STATIC = 'tf_static'
 
 # Topics whose last message a late subscriber must still get (transient-local).
 LATCHED = (RIG, CALIBRATION, CAMERA_POSES)

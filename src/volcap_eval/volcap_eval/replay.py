@@ -61,6 +61,7 @@ def cleaned_frame_sets(bag: str | Path, configs: dict[str, DepthFilterConfig], c
     if limit is not None and limit < 1:
         return
     captures = 0
+    kept = dict.fromkeys(configs, 0)    # cleaned depth pixels per config, to refuse an empty result
     for fs in frame_sets(bag, phases=(CLEAN_PLATE, CAPTURE), cameras=names):
         out: dict[str, dict[str, CleanedCamera]] = {c: {} for c in configs}
         for name, frame in fs.cameras.items():
@@ -72,13 +73,26 @@ def cleaned_frame_sets(bag: str | Path, configs: dict[str, DepthFilterConfig], c
                 for o in s.add(pair):
                     if o.kind == 'cleaned':
                         out[config][name] = CleanedCamera(frame, o.result, o.cleaner)
+                        kept[config] += int(np.count_nonzero(o.result.depth))
                     elif o.kind == 'failed':
                         raise ValueError(o.message)
         if fs.phase == CAPTURE:
-            yield fs, out
             captures += 1
+            _refuse_empty(kept, captures, limit)
+            yield fs, out
             if captures == limit:
                 return
+
+
+def _refuse_empty(kept: dict[str, int], captures: int, limit: int | None) -> None:
+    """A cleaning that leaves no depth at all is a failure, not an empty table: checked once the
+    first capture frame sets are in (a few empty ones can be a momentarily empty stage)."""
+    if captures == min(limit or 3, 3):
+        empty = [c for c, n in kept.items() if n == 0]
+        if empty:
+            raise ValueError(f'depth cleaning ({", ".join(empty)}) left no depth pixel in {captures} capture frame '
+                             'sets of any camera: check the range gate, the clean plate and, for depth a driver '
+                             'registered to colour, that its frame id equals the colour\'s (docs/rig.md)')
 
 
 def capture_views(bag: str | Path, calibration: Calibration, frames: int, progress: bool = True

@@ -2,9 +2,12 @@
 
     ros2 run volcap_filter depth_filter --ros-args -r __ns:=/cam0
 
-Subscribes (sensor-data QoS, relative names) ``color/image_raw``, ``color/camera_info``,
-``depth/image_raw``, ``depth/camera_info``, plus the rig on ``/volcap/rig`` (factory
-depth-to-colour extrinsic) and the session phase on ``/volcap/phase``. Publishes
+Subscribes (relative names, so a launch remaps them onto a vendor driver's topics)
+``color/image_raw`` (or JPEG ``color/image_raw/compressed`` with ``color_transport:=compressed``),
+``color/camera_info``, ``depth/image_raw`` (native, or registered by the driver: same frame id as
+the colour), ``depth/camera_info``, and the session phase on ``/volcap/phase``. Native depth takes
+its depth-to-colour extrinsic from the ``rig_file`` parameter, ``/volcap/rig`` or the driver's
+``/tf_static`` (looked up between the two camera_info frame ids). Publishes
 ``depth/image_clean`` (16UC1 mm, colour geometry at the output size) with its camera_info and
 ``points`` (xyz + rgb, colour optical frame). The clean plate is learnt during the
 ``clean_plate`` phase, or on the ``~/capture_clean_plate`` service. Every threshold is a
@@ -18,9 +21,10 @@ from pathlib import Path
 
 import yaml
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 
 from volcap_core import qos, topics
 from volcap_core.camera import depth_to_millimetres
@@ -28,23 +32,26 @@ from volcap_core.conversions import (
     MessageConversionError,
     camera_info_to_model,
     camera_model_to_info,
-    color_to_rgb,
+    color_message_to_rgb,
     depth_to_metres,
     numpy_to_image,
     points_to_pointcloud2,
     stamp_to_ns,
+    tf_message_to_transforms,
 )
+from volcap_core.frames import depth_to_color
 from volcap_core.rig import Rig
 from volcap_core.ros import Diagnostics, declare_config, run_node
-from volcap_core.sync import FrameSetSynchronizer
+from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
+from volcap_core.tf import StaticTransforms
 
 from .mask import BackgroundModel
 from .pipeline import DepthFilterConfig
 from .session import CleanPlateSession, DepthFilterNodeConfig, FramePair, Outcome
 
 
-def decode(pair: tuple[Image, Image]):
-    return color_to_rgb(pair[0]), depth_to_metres(pair[1])
+def decode(pair: tuple[Image | CompressedImage, Image]):
+    return color_message_to_rgb(pair[0]), depth_to_metres(pair[1])
 
 
 class DepthFilter(Node):
@@ -64,20 +71,30 @@ class DepthFilter(Node):
                                          (self.node_cfg.output_width, self.node_cfg.output_height),
                                          self.node_cfg.max_held_frames, background)
         self.sync = FrameSetSynchronizer([self.camera], ('color', 'depth'),
-                                         tolerance_ns=int(self.node_cfg.sync_tolerance_ms * 1e6),
+                                         tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
+        self.static_transforms = StaticTransforms()
+        self.info_frames: dict[str, str] = {}     # stream -> camera_info frame id
         self.figures_requested = False
         self.processed = self.skipped = 0
+        self.empty_streak = 0      # consecutive cleaned frames with no depth left
         self.last_ms = 0.0
 
         # Created before the image subscriptions: the executor serves ready subscriptions in
         # creation order, so a phase change or camera_info sent with a frame is seen before it.
+        if self.node_cfg.rig_file:
+            self._load_rig_file(self.node_cfg.rig_file)
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
+        self.create_subscription(TFMessage, '/' + topics.TF_STATIC, self._on_tf_static, qos.TF_STATIC)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
-        inputs = qos.EVERY_FRAME if self.node_cfg.reliable else qos.SENSOR
+        inputs = qos.EVERY_FRAME if self.node_cfg.reliable else qos.CAMERA
         self.create_subscription(CameraInfo, topics.COLOR_INFO, lambda m: self._on_info(m, 'color'), inputs)
         self.create_subscription(CameraInfo, topics.DEPTH_INFO, lambda m: self._on_info(m, 'depth'), inputs)
-        self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), inputs)
+        if self.node_cfg.color_transport == 'compressed':
+            self.create_subscription(CompressedImage, topics.COLOR_COMPRESSED, lambda m: self._on_image(m, 'color'),
+                                     inputs)
+        else:
+            self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), inputs)
         self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), inputs)
         self.pub_depth = self.create_publisher(Image, topics.DEPTH_CLEAN, qos.DRIVER)
         self.pub_info = self.create_publisher(CameraInfo, topics.DEPTH_CLEAN_INFO, qos.DRIVER)
@@ -91,12 +108,39 @@ class DepthFilter(Node):
         self.node_cfg = cfg
 
     # inputs -------------------------------------------------------------------------------
+    def _load_rig_file(self, path: str) -> None:
+        try:
+            self._handle(self.session.set_rig(Rig.from_yaml(Path(path).read_text())))
+            self.get_logger().info(f'depth-to-colour extrinsic from the rig file {path}')
+        except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError) as e:
+            self.diagnostics.report('error', f'{self.camera}: unusable rig_file {path}: {e}')
+
     def _on_rig(self, msg: String) -> None:
+        if self.node_cfg.rig_file:
+            return   # the operator's file wins over a rig replayed from a bag
         try:
             rig = Rig.from_yaml(msg.data)
             self._handle(self.session.set_rig(rig))
         except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
             self.diagnostics.report('error', f'unusable rig description: {e}')
+
+    def _on_tf_static(self, msg: TFMessage) -> None:
+        try:
+            for parent, child, T in tf_message_to_transforms(msg):
+                self.static_transforms.add(parent, child, T)
+        except ValueError as e:
+            self.diagnostics.report('warn', f'{self.camera}: unusable /tf_static transform: {e}')
+        self._look_up_extrinsic()
+
+    def _look_up_extrinsic(self) -> None:
+        color, depth = self.info_frames.get('color'), self.info_frames.get('depth')
+        if self.session.rig is not None or color is None or depth is None or color == depth:
+            return
+        T = depth_to_color(self.static_transforms, color, depth, self.node_cfg.tf_prefix)
+        if T is not None:
+            if self.session.extrinsic is None:
+                self.get_logger().info(f'depth-to-colour extrinsic {depth} -> {color} from /tf_static')
+            self._handle(self.session.set_extrinsic(T))
 
     def _on_phase(self, msg: String) -> None:
         self._handle(self.session.set_phase(topics.parse_phase(msg.data)))
@@ -120,9 +164,12 @@ class DepthFilter(Node):
         except (MessageConversionError, ValueError) as e:
             self.diagnostics.report('error', f'{self.camera}: unusable {stream} camera_info: {e}')
             return
+        if self.info_frames.get(stream) != msg.header.frame_id:
+            self.info_frames[stream] = msg.header.frame_id
+            self._look_up_extrinsic()
         self._handle(self.session.set_model(stream, model))
 
-    def _on_image(self, msg: Image, stream: str) -> None:
+    def _on_image(self, msg: Image | CompressedImage, stream: str) -> None:
         for fs in self.sync.add(self.camera, stamp_to_ns(msg.header.stamp), msg, stream=stream,
                                 now_ns=time.monotonic_ns()):
             if not fs.complete:
@@ -131,6 +178,8 @@ class DepthFilter(Node):
                                                 f'{fs.stamp_ns}; frame skipped')
                 continue
             color, depth = fs.get(self.camera, 'color'), fs.get(self.camera, 'depth')
+            # Registered depth shares the colour's frame id (Azure Kinect depth_to_rgb, Orbbec
+            # depth_registration); the colour image's frame id decides, as camera_info may lag.
             pair = FramePair(stamp_to_ns(color.header.stamp), color.header.frame_id,
                              depth.header.frame_id == color.header.frame_id, (color, depth))
             self._handle(self.session.add(pair))
@@ -160,6 +209,7 @@ class DepthFilter(Node):
         if self.figures_requested:
             self._save_figures(o)
         self.processed += 1
+        self.empty_streak = 0 if o.result.depth.any() else self.empty_streak + 1
         self.last_ms = sum(o.result.timings_ms.values()) + (time.perf_counter() - t0) * 1000.0
 
     def _clean_plate_done(self, message: str) -> None:
@@ -188,11 +238,21 @@ class DepthFilter(Node):
         if self.skipped and self.processed == 0:
             return   # the last warning or error stays the published status
         session = self.session
-        mask = 'no clean plate yet' if session.cfg.mask_mode == 'clean_plate' and not session.has_clean_plate \
-            else session.cfg.mask_mode
-        self.diagnostics.report('ok', f'{self.camera}: {self.processed} frames cleaned', processed=self.processed,
-                                skipped=self.skipped, last_ms=round(self.last_ms, 1), mask=mask,
-                                clean_plate_frames=session.background.frames)
+        values = dict(processed=self.processed, skipped=self.skipped, last_ms=round(self.last_ms, 1),
+                      clean_plate_frames=session.background.frames)
+        if self.empty_streak:
+            self.diagnostics.report('warn', f'{self.camera}: the last {self.empty_streak} cleaned frames have no depth '
+                                            'left (empty stage, or the range gate / clean plate removes everything)',
+                                    mask=session.cfg.mask_mode, **values)
+            return
+        if session.cfg.mask_mode == 'clean_plate' and not session.has_clean_plate and session.learn_remaining == 0:
+            service = f'{self.get_fully_qualified_name()}/capture_clean_plate'
+            self.diagnostics.report('warn', f'{self.camera}: no clean plate learnt: depth is published unmasked; '
+                                            f'empty the stage and call {service} (std_srvs/srv/Trigger)',
+                                    mask='none (no clean plate)', **values)
+            return
+        self.diagnostics.report('ok', f'{self.camera}: {self.processed} frames cleaned', mask=session.cfg.mask_mode,
+                                **values)
 
 
 def main(args=None):

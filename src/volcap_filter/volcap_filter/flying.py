@@ -20,6 +20,12 @@ sees: a point floating between foreground and background. Two detectors:
   strict, since mixing only ever pulls a pixel from its surface towards the other one. Then
   connected components of kept pixels smaller than ``min_component_px`` (interference speckle,
   stray clusters) are removed.
+
+Depth a driver has registered to the colour camera (Azure Kinect ``depth_to_rgb``, Orbbec
+``depth_registration``) is 640x576 spread over 1280x720: every 4-6 px a row and a column stay
+empty, so every pixel borders a hole and both tests would remove all of it. ``fill_lattice_gaps``
+bridges such gaps (at most ``max_gap`` px between two pixels of one surface) for the tests only;
+the holes stay holes in the output.
 """
 from __future__ import annotations
 
@@ -163,6 +169,54 @@ def _drop_small(labels, n_labels, keep, at_step, z, slope, base, quad, min_px):
                     if 0 <= y < h and 0 <= x < w and size[labels[y, x]] >= min_px and abs(z[y, x] - p) <= jump:
                         ok = True
             keep[v, u] = ok
+
+
+@numba.njit(cache=True)
+def _fill_gaps(z, slope, base, quad, max_gap, out):
+    h, w = z.shape
+    for v in range(h):
+        for u in range(w):
+            out[v, u] = z[v, u]
+            if z[v, u] > 0.0:
+                continue
+            for dy, dx in ((0, 1), (1, 0)):
+                a, da, b, db = 0.0, 0, 0.0, 0
+                for k in range(1, max_gap + 1):
+                    y, x = v - k * dy, u - k * dx
+                    if y < 0 or x < 0:
+                        break
+                    if z[y, x] > 0.0:
+                        a, da = z[y, x], k
+                        break
+                for k in range(1, max_gap + 1):
+                    y, x = v + k * dy, u + k * dx
+                    if y >= h or x >= w:
+                        break
+                    if z[y, x] > 0.0:
+                        b, db = z[y, x], k
+                        break
+                if da == 0 or db == 0 or da + db > max_gap + 1:
+                    continue
+                m = 0.5 * (a + b)
+                # the two sides must be one surface: within a surface step per pixel of span
+                if abs(a - b) <= (slope * m + 4.3 * (base + quad * m * m)) * (da + db):
+                    out[v, u] = a + (b - a) * da / (da + db)
+                    break
+
+
+def fill_lattice_gaps(depth_m: np.ndarray, focal_px: float, cfg: FlyingPixelConfig | None = None,
+                      max_gap: int = 2) -> np.ndarray:
+    """Depth with holes of at most ``max_gap`` px between two pixels of one surface (along a row
+    or a column) filled by linear interpolation. Two passes: the first fills the empty rows and
+    columns of a driver's upsampled depth, the second the pixels where they cross."""
+    cfg = cfg or FlyingPixelConfig()
+    z = np.ascontiguousarray(depth_m, np.float32)
+    slope = float(np.tan(np.radians(cfg.max_incidence_deg)) / focal_px)
+    for _ in range(2):
+        out = np.empty_like(z)
+        _fill_gaps(z, slope, cfg.noise_base, cfg.noise_quad, max_gap, out)
+        z = out
+    return z
 
 
 def flying_pixels(depth_m: np.ndarray, focal_px: float, cfg: FlyingPixelConfig | None = None) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 
 from volcap_core.settings import setting, validate
 
-from .flying import FlyingPixelConfig, flying_pixels, paper_flying_pixels
+from .flying import FlyingPixelConfig, fill_lattice_gaps, flying_pixels, paper_flying_pixels
 from .mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
 from .registration import DepthRegistration, Registered
 
@@ -135,11 +135,17 @@ class DepthCleaner:
 
     def _flying(self, depth: np.ndarray) -> np.ndarray:
         method = self.cfg.flying_method
+        if method == 'none':
+            return np.zeros(depth.shape, bool)
+        focal = self.registration.depth_model.fx
+        # Depth registered by a driver has a lattice of empty rows and columns: bridged for the
+        # tests (else every pixel borders a hole), left empty in the output.
+        tested = fill_lattice_gaps(depth, focal, self.cfg.flying) if self.registration.registered else depth
         if method == 'volcap':
-            return flying_pixels(depth, self.registration.depth_model.fx, self.cfg.flying)
-        if method.startswith('paper_'):
-            return paper_flying_pixels(depth, method.removeprefix('paper_'))
-        return np.zeros(depth.shape, bool)
+            found = flying_pixels(tested, focal, self.cfg.flying)
+        else:
+            found = paper_flying_pixels(tested, method.removeprefix('paper_'))
+        return found & (depth > 0)
 
     def _gate(self, depth: np.ndarray, drop: np.ndarray | None = None) -> np.ndarray:
         """Depth with ``drop`` pixels and, if the gate is on, out-of-range ones set to 0."""

@@ -5,7 +5,9 @@ A pair is learnt into the clean plate (during the ``clean_plate`` phase, or whil
 capture still needs frames), cleaned, held (its camera models or the rig's depth-to-colour
 extrinsic are still to come: topics have no order across them, so a late clean-plate frame
 must still be learnt, not lost) or skipped (held too long, or unusable). The cleaner is rebuilt
-whenever the camera models, the registration mode or the rig change. The ``depth_filter`` node
+whenever the camera models, the registration mode or the extrinsic change. Native depth needs
+the depth-to-colour extrinsic: from the rig (``/volcap/rig`` or a rig file) or, on a rig of
+vendor drivers, from their ``/tf_static``. The ``depth_filter`` node
 and the offline replay (``volcap_eval.replay``) both drive this class, so they decide alike.
 """
 from __future__ import annotations
@@ -20,7 +22,6 @@ from volcap_core import topics
 from volcap_core.camera import CameraModel
 from volcap_core.rig import Rig
 from volcap_core.settings import setting
-from volcap_core.sync import SYNC_TOLERANCE_MS
 
 from .mask import BackgroundModel
 from .pipeline import CleanResult, DepthCleaner, DepthFilterConfig
@@ -32,13 +33,21 @@ class DepthFilterNodeConfig:
     """The depth_filter node's own settings (the cleaning itself: ``DepthFilterConfig``)."""
     camera: str = setting('', 'camera name in the rig description (empty: the last part of the namespace)',
                           read_only=True)
+    rig_file: str = setting('', 'rig description YAML (`volcap rig`) giving the depth-to-colour extrinsic '
+                            '(empty: /volcap/rig or /tf_static)', read_only=True)
+    tf_prefix: str = setting('', 'prepended to the camera_info frame ids when looking them up on /tf_static',
+                             read_only=True)
+    color_transport: str = setting('raw', 'colour as sensor_msgs/Image on color/image_raw (raw) or JPEG '
+                                   'CompressedImage on color/image_raw/compressed', choices=('raw', 'compressed'),
+                                   read_only=True)
     output_width: int = setting(0, 'cleaned depth width (0 = the colour width)', 0, 8192, read_only=True)
     output_height: int = setting(0, 'cleaned depth height (0 = the colour height)', 0, 8192, read_only=True)
     clean_plate_frames: int = setting(10, 'frames gathered by ~/capture_clean_plate', 1, 1000)
     background_file: str = setting('', 'clean plate to load at start and save after learning (npz)',
                                    read_only=True)
     publish_points: bool = setting(True, 'publish the coloured point cloud')
-    sync_tolerance_ms: float = setting(SYNC_TOLERANCE_MS, 'colour/depth stamp tolerance', 0.0, 100.0,
+    sync_tolerance_ms: float = setting(0.0, 'stamp tolerance between colour and depth, ms (0: just under half the frame '
+                                       'period the stamps show)', 0.0, 100.0,
                                        read_only=True)
     max_held_frames: int = setting(4, 'image pairs kept while their camera_info or the rig is still to come',
                                    0, 100, read_only=True)
@@ -80,6 +89,7 @@ class CleanPlateSession:
         self.max_held = max_held
         self.background = background or BackgroundModel()
         self.rig: Rig | None = None
+        self.extrinsic: np.ndarray | None = None   # T_color_depth from /tf_static
         self.models: dict[str, CameraModel] = {}
         self.phase: str | None = None
         self.learn_remaining = 0
@@ -91,6 +101,14 @@ class CleanPlateSession:
         rig.camera(self.camera)   # KeyError when the rig lacks this camera
         self.rig = rig
         self.cleaner = None       # rebuilt with the new extrinsic on the next frame
+        return self._process_held()
+
+    def set_extrinsic(self, T_color_depth: np.ndarray) -> list[Outcome]:
+        """The depth-to-colour extrinsic from the drivers' static transforms (a rig wins over it)."""
+        if self.extrinsic is None or not np.allclose(self.extrinsic, T_color_depth):
+            self.extrinsic = np.asarray(T_color_depth, dtype=np.float64)
+            if self.rig is None:
+                self.cleaner = None
         return self._process_held()
 
     def set_model(self, stream: str, model: CameraModel) -> list[Outcome]:
@@ -130,8 +148,9 @@ class CleanPlateSession:
         """What a pair still needs before it can be cleaned, or None."""
         if 'color' not in self.models or 'depth' not in self.models:
             return 'no camera_info yet'
-        if not pair.registered and self.rig is None:
-            return f'waiting for the rig on /{topics.RIG} (depth-to-colour extrinsic)'
+        if not pair.registered and self.rig is None and self.extrinsic is None:
+            return (f'waiting for the depth-to-colour extrinsic (/tf_static from the driver, rig_file, or '
+                    f'/{topics.RIG})')
         return None
 
     def _process_held(self) -> list[Outcome]:
@@ -175,7 +194,8 @@ class CleanPlateSession:
         c = self.cleaner
         if c is None or c.registration.color_model != color_model or c.registration.depth_model != depth_model \
                 or c.registration.registered != pair.registered:
-            T = np.eye(4) if pair.registered else self.rig.camera(self.camera).T_color_depth
+            T = np.eye(4) if pair.registered else self.rig.camera(self.camera).T_color_depth \
+                if self.rig is not None else self.extrinsic
             w, h = self.output_size
             size = (w or color_model.width, h or color_model.height)
             c = DepthCleaner(DepthRegistration(depth_model, color_model, T, size, registered=pair.registered),

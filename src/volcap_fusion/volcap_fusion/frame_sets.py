@@ -7,7 +7,6 @@ from typing import Any, Callable
 
 from volcap_core import topics
 from volcap_core.settings import setting
-from volcap_core.sync import SYNC_TOLERANCE_MS
 
 from .tsdf import CameraView
 
@@ -18,7 +17,8 @@ ALL = 'all'
 class FusionNodeConfig:
     """The tsdf_fusion node's own settings (the fusion itself: ``FusionConfig``)."""
     cameras: tuple[str, ...] = setting((ALL,), 'cameras to fuse ("all": every calibrated camera)', read_only=True)
-    sync_tolerance_ms: float = setting(SYNC_TOLERANCE_MS, 'stamp tolerance within a frame set', 0.0, 100.0,
+    sync_tolerance_ms: float = setting(0.0, 'stamp tolerance within a frame set, ms (0: just under half the frame '
+                                       'period the stamps show)', 0.0, 100.0,
                                        read_only=True)
     frame_timeout_ms: float = setting(300.0, 'after this, fuse the cameras that arrived', 1.0, 10_000.0,
                                       read_only=True)

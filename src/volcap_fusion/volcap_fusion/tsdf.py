@@ -32,7 +32,9 @@ DEPTH_SCALE = 10_000.0   # depth units per metre handed to Open3D (0.1 mm; 6.5 m
 class FusionConfig:
     voxel_size: float = setting(VOXEL_SIZE, 'TSDF voxel edge (m)', 0.0005, 0.1, read_only=True)
     trunc_voxels: float = setting(4.0, 'SDF truncation in voxels', 1.0, 32.0, read_only=True)
-    weight_threshold: float = setting(1.0, 'observations a voxel needs to be meshed', 0.0, 100.0, read_only=True)
+    weight_threshold: float = setting(1.0, 'a voxel is meshed when more cameras than this saw it (capped below the '
+                                      'number of cameras fused, so one camera still gives a mesh)', 0.0, 100.0,
+                                      read_only=True)
     block_resolution: int = setting(8, 'voxels per block edge', choices=(4, 8, 16), read_only=True)
     block_count: int = setting(40_000, 'initial voxel block capacity (it grows when needed)', 1, 10_000_000,
                                read_only=True)
@@ -377,10 +379,11 @@ class TsdfFusion:
         lo, hi = o3c.Tensor(lo, device=blocks.device), o3c.Tensor(hi, device=blocks.device)
         return blocks[((blocks >= lo) & (blocks <= hi)).all(dim=1)]
 
-    def extract(self, volume: o3d.t.geometry.VoxelBlockGrid, box: tuple[np.ndarray, np.ndarray]
+    def extract(self, volume: o3d.t.geometry.VoxelBlockGrid, box: tuple[np.ndarray, np.ndarray], cameras: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vertices, uint8 colours, triangles) of the zero level set, cut to the capture box."""
-        mesh = volume.extract_triangle_mesh(weight_threshold=self.cfg.weight_threshold).cpu()
+        mesh = volume.extract_triangle_mesh(weight_threshold=effective_weight_threshold(self.cfg.weight_threshold,
+                                                                                        cameras)).cpu()
         if 'positions' not in mesh.vertex or mesh.vertex.positions.shape[0] == 0 or 'indices' not in mesh.triangle:
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32)
         vertices = mesh.vertex.positions.numpy()
@@ -395,13 +398,22 @@ class TsdfFusion:
         t0 = time.perf_counter()
         box = self.capture_box(views)
         volume = self.empty_volume()
-        if sum(self.integrate(volume, view, box) for view in views) == 0:
-            raise ValueError('no depth inside the capture box in any camera')
+        seen = sum(self.integrate(volume, view, box) > 0 for view in views)
         t1 = time.perf_counter()
-        vertices, colors, triangles = self.extract(volume, box)
+        if seen == 0:
+            # An empty stage is a state, not a failure: an empty model the caller reports.
+            empty = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32)
+            return FusedModel(*empty, [v.name for v in views], {'integrate': (t1 - t0) * 1e3, 'extract': 0.0})
+        vertices, colors, triangles = self.extract(volume, box, seen)
         t2 = time.perf_counter()
         return FusedModel(vertices, colors, triangles, [v.name for v in views],
                           {'integrate': (t1 - t0) * 1e3, 'extract': (t2 - t1) * 1e3})
+
+
+def effective_weight_threshold(weight_threshold: float, cameras: int) -> float:
+    """Open3D meshes voxels whose weight (one per camera that saw them) is above the threshold:
+    capped at one below the cameras fused, so fewer cameras than the threshold still mesh."""
+    return max(0.0, min(weight_threshold, cameras - 1.0))
 
 
 def convergence_point(poses: list[np.ndarray]) -> np.ndarray:
@@ -449,7 +461,8 @@ def bare_open3d_fusion(views: list[CameraView], cfg: FusionConfig, volume: o3d.t
         blocks = vbg.compute_unique_block_coordinates(depth, depth_k, extrinsic, 1000.0, cfg.depth_max,
                                                       cfg.trunc_voxels)
         vbg.integrate(blocks, depth, color, depth_k, color_k, extrinsic, 1000.0, cfg.depth_max, cfg.trunc_voxels)
-    mesh = vbg.extract_triangle_mesh(weight_threshold=cfg.weight_threshold).cpu()
+    mesh = vbg.extract_triangle_mesh(weight_threshold=effective_weight_threshold(cfg.weight_threshold,
+                                                                                   len(views))).cpu()
     if 'indices' not in mesh.triangle:
         return FusedModel(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32))
     return FusedModel(mesh.vertex.positions.numpy(), colors_to_uint8(mesh.vertex.colors.numpy()),

@@ -4,8 +4,9 @@ mesh per time step.
     ros2 run volcap_fusion tsdf_fusion --ros-args -p voxel_size:=0.006 -p output_dir:=/data/take1
 
 Subscribes, per camera of the calibration on ``/volcap/calibration`` (or the ``cameras``
-parameter): ``<cam>/depth/image_clean`` with its camera_info, ``<cam>/color/image_corrected``
-and ``<cam>/color/camera_info``. A frame set is the cameras' images with the same stamp (within
+parameter), relative names only: ``<cam>/depth/image_clean`` and ``<cam>/color/image_corrected``,
+each with its camera_info (``.../camera_info``, published by the depth filter and the colour
+corrector). A frame set is the cameras' images with the same stamp (within
 ``sync_tolerance_ms``); one still incomplete after ``frame_timeout_ms`` is fused from the
 cameras that arrived, and the missing ones are reported on ``volcap/diagnostics``.
 
@@ -40,7 +41,7 @@ from volcap_core.conversions import (
     stamp_to_ns,
 )
 from volcap_core.ros import Diagnostics, declare_config, run_node
-from volcap_core.sync import FrameSet, FrameSetSynchronizer
+from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
 from .frame_sets import FusionNodeConfig, frame_set_views, fused_cameras, fused_phase
@@ -67,7 +68,7 @@ class TsdfFusionNode(Node):
         self.infos: dict[tuple[str, str], CameraInfo] = {}
         self.camera_subscriptions = []
         self.phase = None
-        self.stats = {'fused': 0, 'incomplete': 0, 'skipped': 0}
+        self.stats = {'fused': 0, 'incomplete': 0, 'skipped': 0, 'empty': 0}
         self.last = {}
         self.worker = DropOldestWorker(self._fuse, self.node_cfg.queue_size, 'tsdf_fusion_worker',
                                        on_error=self._on_fusion_error)
@@ -103,22 +104,22 @@ class TsdfFusionNode(Node):
     def _subscribe(self, cameras: list[str]) -> None:
         for sub in self.camera_subscriptions:
             self.destroy_subscription(sub)
-        profile = qos.EVERY_FRAME if self.node_cfg.reliable else qos.SENSOR
+        profile = qos.EVERY_FRAME if self.node_cfg.reliable else qos.CAMERA
         subs = []
         # camera_info first: the executor serves ready subscriptions in creation order
         for cam in cameras:
-            for topic, stream in ((topics.DEPTH_CLEAN_INFO, 'depth'), (topics.COLOR_INFO, 'color')):
+            for topic, stream in ((topics.DEPTH_CLEAN_INFO, 'depth'), (topics.COLOR_CORRECTED_INFO, 'color')):
                 subs.append(self.create_subscription(
-                    CameraInfo, f'/{cam}/{topic}', lambda m, c=cam, s=stream: self.infos.__setitem__((c, s), m),
+                    CameraInfo, topics.camera_topic(cam, topic), lambda m, c=cam, s=stream: self.infos.__setitem__((c, s), m),
                     profile))
         for cam in cameras:
             for topic, stream in ((topics.DEPTH_CLEAN, 'depth'), (topics.COLOR_CORRECTED, 'color')):
                 subs.append(self.create_subscription(
-                    Image, f'/{cam}/{topic}', lambda m, c=cam, s=stream: self._on_image(c, s, m), profile))
+                    Image, topics.camera_topic(cam, topic), lambda m, c=cam, s=stream: self._on_image(c, s, m), profile))
         self.camera_subscriptions = subs
         self.cameras = cameras
         self.sync = FrameSetSynchronizer(cameras, ('depth', 'color'),
-                                         tolerance_ns=int(self.node_cfg.sync_tolerance_ms * 1e6),
+                                         tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
                                          timeout_ns=int(self.node_cfg.frame_timeout_ms * 1e6), max_pending=4)
         self.get_logger().info(f'fusing {len(cameras)} cameras: {", ".join(cameras)}')
 
@@ -161,6 +162,10 @@ class TsdfFusionNode(Node):
         if plan.missing:
             self.diagnostics.report('warn', f'frame set {fs.stamp_ns} fused without {", ".join(plan.missing)}')
         model = self.fusion.fuse(plan.views)
+        if len(model.vertices) == 0:
+            self.stats['empty'] += 1
+            self.last = {'cameras': len(plan.views), 'vertices': 0}
+            return
         frame = calibration.world_frame
         self.pub_points.publish(points_to_pointcloud2(model.vertices, model.colors, fs.stamp_ns, frame))
         marker = model.decimated(self.node_cfg.marker_max_triangles, 2 * self.fusion.cfg.voxel_size)
@@ -192,8 +197,10 @@ class TsdfFusionNode(Node):
             self.diagnostics.report('warn', f'waiting for the calibration on /{topics.CALIBRATION}')
             return
         w = self.worker
-        self.diagnostics.report('ok', f'{self.stats["fused"]} frame sets fused', waiting=w.pending,
-                                dropped=w.dropped, errors=w.errors, **self.stats, **self.last)
+        level, message = ('warn', 'empty stage: the last frame set had no depth inside the capture box') \
+            if self.last.get('vertices') == 0 else ('ok', f'{self.stats["fused"]} frame sets fused')
+        self.diagnostics.report(level, message, waiting=w.pending, dropped=w.dropped, errors=w.errors, **self.stats,
+                                **self.last)
 
     def destroy_node(self):
         self.worker.stop()

@@ -1,0 +1,157 @@
+"""Rig health from the frames' stamps alone: what a multi-camera operator checks first.
+
+Per camera, over a sliding window: delivered rate, dropped frames (gaps in the stamps of more
+than 1.5 frame periods), the colour-depth stamp offset, the camera's offset from the rest of
+the rig (its depth stamp minus the median of every camera's nearest depth stamp) and how
+fast that offset changes (drift, ms per second of capture: a camera whose sync cable or clock
+slips shows here long before its frames stop pairing). Per rig: each frame set's stamp spread.
+No ROS: ``volcap monitor`` feeds it from subscriptions, tests from plain numbers.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .sync import DEFAULT_PERIOD_NS, PeriodEstimate, tolerance_for_period
+
+STREAMS = ('color', 'depth')
+
+
+@dataclass
+class CameraHealth:
+    camera: str
+    frames: int = 0                        # depth frames in the window
+    rate_hz: float = 0.0
+    dropped: int = 0                       # frames missing from the stamps since the start
+    color_depth_offset_ms: float | None = None   # median colour stamp minus nearest depth stamp
+    rig_offset_ms: float | None = None     # latest offset from the other cameras
+    drift_ms_per_s: float | None = None    # slope of that offset over the window
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def level(self) -> str:
+        return 'warn' if self.warnings else 'ok'
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), 'level': self.level}
+
+
+@dataclass
+class RigHealthReport:
+    cameras: dict[str, CameraHealth]
+    period_ms: float
+    tolerance_ms: float
+    spread_ms_median: float | None         # per frame set: latest minus earliest camera's depth stamp
+    spread_ms_max: float | None
+
+    @property
+    def warnings(self) -> list[str]:
+        return [f'{c}: {w}' for c, h in self.cameras.items() for w in h.warnings]
+
+    def to_dict(self) -> dict:
+        return {'period_ms': self.period_ms, 'tolerance_ms': self.tolerance_ms,
+                'spread_ms_median': self.spread_ms_median, 'spread_ms_max': self.spread_ms_max,
+                'cameras': {c: h.to_dict() for c, h in self.cameras.items()}}
+
+
+class RigHealth:
+    def __init__(self, cameras: list[str], window_s: float = 10.0, drift_warn_ms_per_s: float = 0.2,
+                 min_rate_share: float = 0.9):
+        if not cameras:
+            raise ValueError('the rig health monitor needs at least one camera')
+        self.cameras = list(cameras)
+        self.window_ns = int(window_s * 1e9)
+        self.drift_warn = drift_warn_ms_per_s
+        self.min_rate_share = min_rate_share
+        self.period = PeriodEstimate()
+        self._stamps = {(c, s): deque() for c in self.cameras for s in STREAMS}   # (receive_ns, stamp_ns)
+        self._last = {}
+        self.dropped = dict.fromkeys(self.cameras, 0)
+
+    def add(self, camera: str, stream: str, stamp_ns: int, receive_ns: int) -> None:
+        key = (camera, stream)
+        if key not in self._stamps:
+            return
+        self.period.add(key, stamp_ns)
+        if stream == 'depth':
+            last = self._last.get(camera)
+            period = self.period.period_ns
+            if last is not None and period and stamp_ns - last > 1.5 * period:
+                self.dropped[camera] += int(round((stamp_ns - last) / period)) - 1
+            self._last[camera] = stamp_ns
+        q = self._stamps[key]
+        q.append((receive_ns, stamp_ns))
+        while q and q[-1][1] - q[0][1] > self.window_ns:
+            q.popleft()
+
+    def report(self) -> RigHealthReport:
+        period = self.period.period_ns or DEFAULT_PERIOD_NS
+        tolerance = tolerance_for_period(period)
+        depth = {c: np.array([s for _, s in self._stamps[(c, 'depth')]], dtype=np.int64) for c in self.cameras}
+        out = {}
+        for cam in self.cameras:
+            h = CameraHealth(cam, frames=len(depth[cam]), dropped=self.dropped[cam])
+            received = np.array([r for r, _ in self._stamps[(cam, 'depth')]], dtype=np.int64)
+            if len(received) > 1 and received[-1] > received[0]:
+                h.rate_hz = (len(received) - 1) / ((received[-1] - received[0]) / 1e9)
+            colors = np.array([s for _, s in self._stamps[(cam, 'color')]], dtype=np.int64)
+            if len(colors) and len(depth[cam]):
+                h.color_depth_offset_ms = float(np.median(colors - _nearest(depth[cam], colors))) / 1e6
+            self._rig_offset(cam, depth, h)
+            self._warn(h, period, tolerance)
+            out[cam] = h
+        spread = _spreads(depth)
+        return RigHealthReport(out, period / 1e6, tolerance / 1e6,
+                               float(np.median(spread)) / 1e6 if spread.size else None,
+                               float(spread.max()) / 1e6 if spread.size else None)
+
+    def _rig_offset(self, cam: str, depth: dict, h: CameraHealth) -> None:
+        own = depth[cam]
+        rig = [depth[c] for c in self.cameras if len(depth[c])]
+        if len(rig) < 2 or len(own) < 2:
+            return
+        # the median over every camera (itself included): one drifting camera moves it not at all
+        offsets = own - np.median(np.stack([_nearest(d, own) for d in rig]), axis=0)
+        h.rig_offset_ms = float(offsets[-1]) / 1e6
+        t = (own - own[0]) / 1e9
+        if t[-1] >= 2.0:   # a slope needs a few seconds of capture
+            h.drift_ms_per_s = float(np.polyfit(t, offsets / 1e6, 1)[0])
+
+    def _warn(self, h: CameraHealth, period: int, tolerance: int) -> None:
+        if h.frames == 0:
+            h.warnings.append('no depth frames')
+            return
+        expected = 1e9 / period
+        if h.frames > 2 and h.rate_hz < self.min_rate_share * expected:
+            h.warnings.append(f'{h.rate_hz:.1f} Hz delivered, the stamps say {expected:.1f} Hz')
+        if h.dropped:
+            h.warnings.append(f'{h.dropped} frames dropped')
+        if h.color_depth_offset_ms is not None and abs(h.color_depth_offset_ms) * 1e6 > tolerance:
+            h.warnings.append(f'colour {h.color_depth_offset_ms:+.1f} ms from depth: beyond the '
+                              f'{tolerance / 1e6:.1f} ms pairing tolerance')
+        if h.drift_ms_per_s is not None and abs(h.drift_ms_per_s) > self.drift_warn:
+            h.warnings.append(f'drifting {h.drift_ms_per_s:+.2f} ms/s from the rig (check sync cable and '
+                              'clock)')
+        elif h.rig_offset_ms is not None and abs(h.rig_offset_ms) * 1e6 > tolerance:
+            h.warnings.append(f'{h.rig_offset_ms:+.1f} ms from the rig: its frames no longer join the frame sets')
+
+
+def _nearest(sorted_stamps: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """For each query, the nearest of ``sorted_stamps`` (non-empty, ascending)."""
+    if len(sorted_stamps) == 1:
+        return np.full(len(queries), sorted_stamps[0])
+    i = np.clip(np.searchsorted(sorted_stamps, queries), 1, len(sorted_stamps) - 1)
+    before, after = sorted_stamps[i - 1], sorted_stamps[i]
+    return np.where(np.abs(queries - before) <= np.abs(after - queries), before, after)
+
+
+def _spreads(depth: dict[str, np.ndarray]) -> np.ndarray:
+    """Per depth frame of the first camera with frames: the spread of every camera's nearest stamp."""
+    present = [d for d in depth.values() if len(d)]
+    if len(present) < 2:
+        return np.zeros(0, np.int64)
+    reference = present[0]
+    nearest = np.stack([_nearest(d, reference) for d in present])
+    return nearest.max(axis=0) - nearest.min(axis=0)

@@ -1,0 +1,49 @@
+"""Rig health from stamps: rate, drops, colour-depth offset, spread and a drifting camera."""
+import pytest
+
+from volcap_core.health import RigHealth
+
+PERIOD = 33_333_333
+CAMS = ['cam0', 'cam1', 'cam2', 'cam3']
+
+
+def feed(health, seconds=8, drift_ms_per_s=None, drop_every=None, color_delay_ms=8.0):
+    start = 10**18
+    for k in range(int(seconds * 30)):
+        t = start + k * PERIOD
+        for cam in CAMS:
+            if drop_every and cam == 'cam3' and k % drop_every == 5:
+                continue
+            stamp = t + (int(drift_ms_per_s * 1e6 * k / 30) if drift_ms_per_s and cam == 'cam2' else 0)
+            health.add(cam, 'depth', stamp, t)
+            health.add(cam, 'color', stamp + int(color_delay_ms * 1e6), t)
+
+
+def test_a_healthy_rig_has_no_warning():
+    health = RigHealth(CAMS)
+    feed(health)
+    report = health.report()
+    assert report.warnings == []
+    assert report.period_ms == pytest.approx(33.33, abs=0.01) and report.spread_ms_max == 0
+    for h in report.cameras.values():
+        assert h.rate_hz == pytest.approx(30, abs=0.1) and h.color_depth_offset_ms == pytest.approx(8.0)
+        assert h.drift_ms_per_s == pytest.approx(0, abs=1e-6) and h.dropped == 0
+
+
+def test_a_camera_drifting_1_ms_per_s_is_named():
+    health = RigHealth(CAMS)
+    feed(health, drift_ms_per_s=1.0)
+    report = health.report()
+    assert report.cameras['cam2'].drift_ms_per_s == pytest.approx(1.0, abs=0.02)
+    assert [w for w in report.warnings if 'drifting' in w] == [report.warnings[0]] and report.warnings[0].startswith('cam2')
+    assert all(abs(report.cameras[c].drift_ms_per_s) < 0.01 for c in ('cam0', 'cam1', 'cam3'))
+    assert report.spread_ms_max == pytest.approx(8.0, abs=0.1)   # 8 s at 1 ms/s
+
+
+def test_drops_and_a_late_colour_stream_are_reported():
+    health = RigHealth(CAMS)
+    feed(health, drop_every=30, color_delay_ms=16.0)   # beyond 15.7 ms, below half a period
+    report = health.report()
+    assert report.cameras['cam3'].dropped == 8
+    assert any('dropped' in w for w in report.cameras['cam3'].warnings)
+    assert all(any('pairing tolerance' in w for w in h.warnings) for h in report.cameras.values())
