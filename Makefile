@@ -65,6 +65,7 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/transport.py
+	$(PY) bench/rig_transport.py
 	$(PY) bench/filter.py
 	test -d bench_out/calib40 || .venv/bin/volcap synth --out bench_out/calib40 --frames 0 --board-poses 40 --background-frames 0 --seed 5 --quiet
 	$(PY) bench/calib.py bench_out/calib40

@@ -75,3 +75,21 @@ def test_launch_replays_a_bag_as_the_frame_source(launch_file):
     half = _launched(launch_file, depth_width='640', depth_height='360')
     assert half[1].kwargs['parameters'] == [{'output_width': 640, 'output_height': 360}]
     assert len(nodes) == 1 + 1 + 2 * 2 + 1
+
+
+def test_launch_on_vendor_drivers_remaps_every_camera(launch_file):
+    nodes = _launched(launch_file, cameras='2', driver='azure_kinect', registered='true', color_format='jpeg',
+                      rig_file='/rig/rig.yaml')
+    by_name = {(n.kwargs['executable'], n.kwargs['namespace']): n.kwargs for n in nodes}
+    depth_filter = by_name[('depth_filter', 'cam1')]
+    assert dict(depth_filter['remappings']) == {
+        'color/image_raw': 'rgb/image_raw', 'color/image_raw/compressed': 'rgb/image_raw/compressed',
+        'color/camera_info': 'rgb/camera_info', 'depth/image_raw': 'depth_to_rgb/image_raw',
+        'depth/camera_info': 'depth_to_rgb/camera_info'}
+    assert depth_filter['parameters'] == [{'color_transport': 'compressed', 'rig_file': '/rig/rig.yaml'}]
+    assert by_name[('color_corrector', 'cam0')]['parameters'] == [{'color_transport': 'compressed'}]
+    service = dict(by_name[('calibration_service', None)]['remappings'])
+    assert service['cam1/color/image_raw/compressed'] == 'cam1/rgb/image_raw/compressed'
+    assert by_name[('tsdf_fusion', None)]['remappings'] == []
+    orbbec = _launched(launch_file, cameras='1', driver='orbbec')
+    assert all(n.kwargs['remappings'] == [] for n in orbbec)      # Orbbec uses volcap's names

@@ -145,3 +145,66 @@ def test_pointcloud_padded_fields_and_nans():
 def test_pose_round_trip():
     T = look_at((1, 2, 3), (0, 0, 1))
     assert np.allclose(pose_to_matrix(matrix_to_pose(T)), T)
+
+
+def test_jpeg_compressed_colour_decodes_as_the_drivers_send_it():
+    from sensor_msgs.msg import CompressedImage
+
+    from volcap_core.conversions import color_message_to_rgb, compressed_to_rgb, rgb_to_compressed
+    rgb = np.zeros((72, 128, 3), np.uint8)
+    rgb[:, :64] = (200, 30, 40)     # red left, blue right: a swapped channel order would show
+    rgb[:, 64:] = (20, 40, 210)
+    for fmt in ('bgra8; jpeg compressed bgr8', 'rgb8; jpeg compressed bgr8', 'jpeg'):   # Azure Kinect, image_transport
+        msg = rgb_to_compressed(rgb, 5, 'cam0_rgb_camera_link')
+        msg.format = fmt
+        msg = deserialize_message(serialize_message(msg), CompressedImage)
+        out = color_message_to_rgb(msg)
+        assert out.shape == rgb.shape and np.abs(out[10:60, 10:50].astype(int) - (200, 30, 40)).max() < 12
+        assert np.abs(out[10:60, 80:120].astype(int) - (20, 40, 210)).max() < 12
+    with pytest.raises(MessageConversionError, match='cannot decode'):
+        compressed_to_rgb(CompressedImage(format='jpeg', data=b'\xff\xd8 not a jpeg'))
+    with pytest.raises(MessageConversionError, match='empty'):
+        compressed_to_rgb(CompressedImage(format='jpeg'))
+    with pytest.raises(MessageConversionError, match='JPEG or PNG'):
+        compressed_to_rgb(CompressedImage(format='theora', data=b'x'))
+
+
+def test_camera_info_distortion_as_each_driver_sends_it():
+    """plumb_bob with 5 or 8 coefficients (Orbbec pads to 8), rational_polynomial with 8."""
+    d8 = [0.3, -2.4, 0.0001, -0.0001, 1.4, 0.2, -2.3, 1.3]
+    for model, d in (('plumb_bob', d8[:5]), ('plumb_bob', d8), ('rational_polynomial', d8)):
+        info = CameraInfo(width=1280, height=720, distortion_model=model, d=d,
+                          k=[600.0, 0, 640, 0, 600.0, 360, 0, 0, 1])
+        assert camera_info_to_model(info).dist == tuple(d)
+    with pytest.raises(MessageConversionError, match='distortion model'):
+        camera_info_to_model(CameraInfo(width=4, height=3, distortion_model='equidistant', d=[0.0] * 4,
+                                        k=[1.0, 0, 2, 0, 1, 1, 0, 0, 1]))
+
+
+def test_tf_static_round_trip_and_lookup_through_a_driver_tree():
+    from scipy.spatial.transform import Rotation
+    from tf2_msgs.msg import TFMessage
+
+    from volcap_core.conversions import tf_message_to_transforms, transforms_to_tf_message
+    from volcap_core.poses import invert, make_transform
+    from volcap_core.tf import StaticTransforms, TransformError
+    T_dc = make_transform(Rotation.from_euler('xyz', [0.01, -0.02, 0.03]).as_matrix(), [-0.032, -0.002, 0.004])
+    optical = make_transform(Rotation.from_euler('xyz', [-np.pi / 2, 0, -np.pi / 2]).as_matrix(), [0, 0, 0])
+    # Orbbec's tree: link -> depth_frame -> color_frame, each frame -> its optical frame
+    tree = [('cam0_link', 'cam0_depth_frame', np.eye(4)),
+            ('cam0_depth_frame', 'cam0_color_frame', optical @ T_dc @ invert(optical)),
+            ('cam0_depth_frame', 'cam0_depth_optical_frame', optical),
+            ('cam0_color_frame', 'cam0_color_optical_frame', optical)]
+    msg = deserialize_message(serialize_message(transforms_to_tf_message(tree, 7)), TFMessage)
+    tf = StaticTransforms()
+    for parent, child, T in tf_message_to_transforms(msg):
+        tf.add(parent, child, T)
+    assert len(tf) == 4
+    # T_color_depth between the optical frames is the inverse of the depth-to-colour pose
+    np.testing.assert_allclose(tf.lookup('cam0_color_optical_frame', 'cam0_depth_optical_frame'), invert(T_dc),
+                               atol=1e-9)
+    np.testing.assert_allclose(tf.lookup('/cam0_depth_optical_frame', 'cam0_color_optical_frame'), T_dc, atol=1e-9)
+    with pytest.raises(TransformError, match='cam1_rgb_camera_link'):
+        tf.lookup('cam1_rgb_camera_link', 'cam0_link')
+    with pytest.raises(ValueError, match='finite'):
+        tf.add('a', 'b', np.full((4, 4), np.nan))

@@ -40,7 +40,6 @@ from volcap_core.conversions import (
     stamp_to_ns,
     tf_message_to_transforms,
 )
-from volcap_core.frames import depth_to_color
 from volcap_core.rig import Rig, RigCamera
 from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
@@ -144,8 +143,8 @@ class CalibrationService(Node):
             info_c, info_d = self.infos.get((cam, 'color')), self.infos.get((cam, 'depth'))
             if info_c is None or info_d is None:
                 continue
-            T = depth_to_color(self.static_transforms, info_c.header.frame_id, info_d.header.frame_id,
-                               self.session.cfg.tf_prefix)
+            T = self.static_transforms.depth_to_color(info_c.header.frame_id, info_d.header.frame_id,
+                                                      self.session.cfg.tf_prefix)
             if T is None:
                 waiting.append(f'{cam} ({info_d.header.frame_id} -> {info_c.header.frame_id})')
                 continue

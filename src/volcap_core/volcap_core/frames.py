@@ -30,7 +30,7 @@ from volcap_core.conversions import (
 )
 from volcap_core.rig import Rig, RigCamera
 from volcap_core.sync import FrameSetSynchronizer
-from volcap_core.tf import StaticTransforms, TransformError
+from volcap_core.tf import StaticTransforms
 
 from .bag_io import BagError, BagReader
 
@@ -117,24 +117,13 @@ def read_rig(reader: BagReader) -> Rig:
         color, depth = infos.get((cam, 'color_info')), infos.get((cam, 'depth_info'))
         if color is None or depth is None:
             raise BagError(f'{reader.path}: camera {cam} has no camera_info messages')
-        T = depth_to_color(tf, color.header.frame_id, depth.header.frame_id)
+        T = tf.depth_to_color(color.header.frame_id, depth.header.frame_id)
         if T is None:
             raise BagError(f'{reader.path}: no depth-to-colour extrinsic for {cam}: no /tf_static chain from '
                            f'{depth.header.frame_id!r} to {color.header.frame_id!r} and no {topics.RIG}; write one '
                            f'with `volcap rig ... --out {sidecar}`')
         rig_cameras.append(RigCamera(cam, camera_info_to_model(color), camera_info_to_model(depth), T))
     return Rig(rig_cameras, name=reader.path.name)
-
-
-def depth_to_color(tf: StaticTransforms, color_frame: str, depth_frame: str, prefix: str = '') -> np.ndarray | None:
-    """T_color_depth between two camera_info frame ids: identity for registered depth (same
-    frame), else the ``/tf_static`` chain (``prefix`` prepended to both ids), else None."""
-    if color_frame == depth_frame:
-        return np.eye(4)
-    try:
-        return tf.lookup(prefix + color_frame, prefix + depth_frame)
-    except TransformError:
-        return None
 
 
 def frame_sets(path: str | Path, phases: tuple[str, ...] | None = None, tolerance_ns: int | None = None,

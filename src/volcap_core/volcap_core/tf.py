@@ -61,3 +61,14 @@ class StaticTransforms:
                 queue.append(neighbour)
         known = ', '.join(self.frames) or 'none yet'
         raise TransformError(f'no static transform chain from {source!r} to {target!r} (frames: {known})')
+
+    def depth_to_color(self, color_frame: str, depth_frame: str, prefix: str = '') -> np.ndarray | None:
+        """T_color_depth between a camera's two camera_info frame ids: identity for registered
+        depth (the same frame), else the chain between them (``prefix`` prepended to both ids,
+        for drivers whose headers lack their tf prefix), else None (not published yet)."""
+        if color_frame == depth_frame:
+            return np.eye(4)
+        try:
+            return self.lookup(prefix + color_frame, prefix + depth_frame)
+        except TransformError:
+            return None

@@ -39,7 +39,6 @@ from volcap_core.conversions import (
     stamp_to_ns,
     tf_message_to_transforms,
 )
-from volcap_core.frames import depth_to_color
 from volcap_core.rig import Rig
 from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
@@ -136,7 +135,7 @@ class DepthFilter(Node):
         color, depth = self.info_frames.get('color'), self.info_frames.get('depth')
         if self.session.rig is not None or color is None or depth is None or color == depth:
             return
-        T = depth_to_color(self.static_transforms, color, depth, self.node_cfg.tf_prefix)
+        T = self.static_transforms.depth_to_color(color, depth, self.node_cfg.tf_prefix)
         if T is not None:
             if self.session.extrinsic is None:
                 self.get_logger().info(f'depth-to-colour extrinsic {depth} -> {color} from /tf_static')

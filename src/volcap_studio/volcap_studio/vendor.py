@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from volcap_core.bag_io import BagReader, BagWriter
 from volcap_core.camera import CameraModel
 from volcap_core.conversions import (
     camera_model_to_info,
@@ -32,6 +33,7 @@ from volcap_core.conversions import (
     rgb_to_compressed,
     transforms_to_tf_message,
 )
+from volcap_core.frames import frame_sets, read_rig
 from volcap_core.poses import invert, make_transform
 from volcap_core.rig import RigCamera
 
@@ -149,9 +151,6 @@ def write_vendor_bag(source_bag, out, layout: str, registered: bool = False, col
                      color_delay_ns: int = 0, max_sets: int | None = None) -> int:
     """What ``ros2 bag record`` of the vendor drivers writes for a volcap bag's frames: the
     drivers' fully qualified topics and ``/tf_static``, no volcap topics. Returns the frame sets."""
-    from volcap_core.bag_io import BagReader, BagWriter
-    from volcap_core.frames import frame_sets, read_rig
-
     with BagReader(source_bag) as reader:
         rig = read_rig(reader)
     n = 0
