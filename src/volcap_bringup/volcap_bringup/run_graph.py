@@ -210,21 +210,28 @@ def _capture_sets(reader: BagReader, color_topic: str) -> int:
 
 
 def _wait_until_subscribed(executor, probe: Node, cameras: list[str], layout: dict, timeout: float) -> None:
-    """Until every camera's raw colour has its filter and corrector (and, for the first camera,
-    the probe), its raw depth a filter, and its cleaned depth and corrected colour the fusion."""
+    """Until every camera's raw colour has its filter and corrector, its raw depth a filter, and
+    its cleaned depth and corrected colour the fusion: by node, as the graph names them (an
+    endpoint not yet discovered, or left by a process that just ended, has no known node)."""
     def wanted(cam):
-        return {layout[cam]['color']: 2 + (cam == cameras[0]),
-                layout[cam]['depth']: 1,
-                topics.camera_topic(cam, topics.DEPTH_CLEAN): 1,
-                topics.camera_topic(cam, topics.COLOR_CORRECTED): 1}
-    counts = {'/' + t: n for cam in cameras for t, n in wanted(cam).items()}
+        ns = '/' + cam
+        return {layout[cam]['color']: {(ns, 'depth_filter'), (ns, 'color_corrector')},
+                layout[cam]['depth']: {(ns, 'depth_filter')},
+                topics.camera_topic(cam, topics.DEPTH_CLEAN): {('/', 'tsdf_fusion')},
+                topics.camera_topic(cam, topics.COLOR_CORRECTED): {('/', 'tsdf_fusion')}}
+    needed = {'/' + t: nodes for cam in cameras for t, nodes in wanted(cam).items()}
+
+    def missing():
+        return {t: nodes - {(i.node_namespace, i.node_name) for i in probe.get_subscriptions_info_by_topic(t)}
+                for t, nodes in needed.items()}
     end = time.monotonic() + timeout
     while time.monotonic() < end:
-        if all(probe.count_subscribers(t) >= n for t, n in counts.items()):
+        if not any(missing().values()):
             return
         executor.spin_once(timeout_sec=0.1)
-    late = [t for t, n in counts.items() if probe.count_subscribers(t) < n]
-    raise RuntimeError(f'the graph did not come up within {timeout:.0f} s: too few subscribers on {late[:3]}')
+    late = {t: sorted(n) for t, n in missing().items() if n}
+    raise RuntimeError(f'the graph did not come up within {timeout:.0f} s: no subscription yet from '
+                       f'{list(late.items())[:3]}')
 
 
 @dataclass

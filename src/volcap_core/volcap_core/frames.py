@@ -104,14 +104,18 @@ def read_rig(reader: BagReader) -> Rig:
     tf = StaticTransforms()
     infos: dict[str, object] = {}
     wanted = {cams[c][s]: (c, s) for c in cams for s in ('color_info', 'depth_info')}
+    complete_at = None
     for m in reader.messages([topics.TF_STATIC, *wanted]):
         if m.topic == topics.TF_STATIC:
             for parent, child, T in tf_message_to_transforms(m.decode()):
                 tf.add(parent, child, T)
         elif wanted[m.topic] not in infos:
             infos[wanted[m.topic]] = m.decode()
-        if len(infos) == len(wanted) and topics.TF_STATIC not in reader.topics:
-            break
+        if len(infos) == len(wanted):
+            complete_at = m.stamp_ns if complete_at is None else complete_at
+            # the drivers' latched /tf_static lands at the start of a recording: a second more will do
+            if topics.TF_STATIC not in reader.topics or m.stamp_ns - complete_at > 1_000_000_000:
+                break
     rig_cameras = []
     for cam in cams:
         color, depth = infos.get((cam, 'color_info')), infos.get((cam, 'depth_info'))

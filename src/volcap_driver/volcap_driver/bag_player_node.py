@@ -167,9 +167,14 @@ class BagPlayer(Node):
             yield item
 
     def _await_subscribers(self, pubs: dict) -> None:
+        """Until every topic has a subscriber and every subscription the graph shows on it has
+        matched this player's publisher: a subscriber still being discovered (a colour corrector
+        that started a moment after the depth filter on the same topic) would miss the first
+        frames, which are volatile."""
         deadline = time.monotonic() + self.wait_for_subscribers
         while time.monotonic() < deadline and not self._stop.is_set():
-            waiting = [t for t, p in pubs.items() if p.get_subscription_count() == 0]
+            waiting = [t for t, p in pubs.items()
+                       if p.get_subscription_count() == 0 or p.get_subscription_count() < self.count_subscribers(p.topic_name)]
             if not waiting:
                 return
             self._stop.wait(0.05)
