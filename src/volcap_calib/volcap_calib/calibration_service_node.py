@@ -26,7 +26,6 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from tf2_msgs.msg import TFMessage
 
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
@@ -38,12 +37,10 @@ from volcap_core.conversions import (
     make_header,
     matrix_to_pose,
     stamp_to_ns,
-    tf_message_to_transforms,
 )
 from volcap_core.rig import Rig, RigCamera
-from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.ros import Diagnostics, StaticTransformListener, declare_config, run_node, subscribe_color
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
-from volcap_core.tf import StaticTransforms
 from volcap_core.worker import DropOldestWorker
 
 from .board import BoardConfig
@@ -69,7 +66,6 @@ class CalibrationService(Node):
                                          tolerance_ns=tolerance_ns_from_ms(cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
         self.infos: dict[tuple[str, str], CameraInfo] = {}
-        self.static_transforms = StaticTransforms()
         self.rig_source = 'camera_info + /tf_static'   # until a rig file or /volcap/rig says otherwise
         self.phase = None
         self.worker = DropOldestWorker(self._detect, cfg.queue_size, 'board-detection',
@@ -80,14 +76,12 @@ class CalibrationService(Node):
         if cfg.rig_file:
             self._set_rig(cfg.rig_file, lambda: Rig.from_yaml(Path(cfg.rig_file).read_text()))
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
-        self.create_subscription(TFMessage, '/' + topics.TF_STATIC, self._on_tf_static, qos.TF_STATIC)
+        self.tf = StaticTransformListener(self, self.diagnostics)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         self.create_service(Trigger, '/' + topics.CALIBRATE, self._on_calibrate)
-        color_type, color_topic = (CompressedImage, topics.COLOR_COMPRESSED) if cfg.color_transport == 'compressed' \
-            else (Image, topics.COLOR_IMAGE)
         for cam in self.cameras:
-            self.create_subscription(color_type, topics.camera_topic(cam, color_topic),
-                                     lambda m, c=cam: self._on_image(m, c, 'color'), qos.EVERY_FRAME)
+            subscribe_color(self, cfg.color_transport, lambda m, c=cam: self._on_image(m, c, 'color'), qos.EVERY_FRAME,
+                            camera=cam)
             self.create_subscription(Image, topics.camera_topic(cam, topics.DEPTH_IMAGE),
                                      lambda m, c=cam: self._on_image(m, c, 'depth'), qos.EVERY_FRAME)
             for stream, rel in (('color', topics.COLOR_INFO), ('depth', topics.DEPTH_INFO)):
@@ -126,13 +120,6 @@ class CalibrationService(Node):
         names = self.session.rig.names
         self.get_logger().info(f'calibrating {len(names)} cameras ({self.rig_source}): {", ".join(names)}')
 
-    def _on_tf_static(self, msg: TFMessage) -> None:
-        try:
-            for parent, child, T in tf_message_to_transforms(msg):
-                self.static_transforms.add(parent, child, T)
-        except ValueError as e:
-            self.diagnostics.report('warn', f'unusable /tf_static transform: {e}')
-
     def _assemble_rig(self) -> None:
         """Without a rig file or /volcap/rig: the cameras whose camera_info (and, for native depth,
         /tf_static extrinsic) have arrived. The rig grows as cameras appear."""
@@ -143,7 +130,7 @@ class CalibrationService(Node):
             info_c, info_d = self.infos.get((cam, 'color')), self.infos.get((cam, 'depth'))
             if info_c is None or info_d is None:
                 continue
-            T = self.static_transforms.depth_to_color(info_c.header.frame_id, info_d.header.frame_id,
+            T = self.tf.transforms.depth_to_color(info_c.header.frame_id, info_d.header.frame_id,
                                                       self.session.cfg.tf_prefix)
             if T is None:
                 waiting.append(f'{cam} ({info_d.header.frame_id} -> {info_c.header.frame_id})')

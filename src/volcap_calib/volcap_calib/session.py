@@ -10,7 +10,7 @@ from pathlib import Path
 
 from volcap_core.calibration import Calibration
 from volcap_core.rig import Rig
-from volcap_core.settings import setting
+from volcap_core.settings import color_transport_setting, setting, tf_prefix_setting
 from volcap_core.topics import CALIBRATION_PHASE, camera_names
 
 from .board import BoardConfig
@@ -26,11 +26,8 @@ class CalibrationServiceConfig:
                                        'description says which of them are calibrated)', read_only=True)
     rig_file: str = setting('', 'rig description YAML (`volcap rig`; empty: /volcap/rig, else the cameras\' '
                             'camera_info with /tf_static)', read_only=True)
-    tf_prefix: str = setting('', 'prepended to the camera_info frame ids when looking them up on /tf_static',
-                             read_only=True)
-    color_transport: str = setting('raw', 'colour as sensor_msgs/Image on color/image_raw (raw) or JPEG '
-                                   'CompressedImage on color/image_raw/compressed', choices=('raw', 'compressed'),
-                                   read_only=True)
+    tf_prefix: str = tf_prefix_setting()
+    color_transport: str = color_transport_setting()
     board_file: str = setting('', 'board YAML (empty: the volcap board)', read_only=True)
     reference: str = setting('', 'camera whose colour frame is the world (empty: the first)')
     collect_phase: str = setting(CALIBRATION_PHASE, 'gather frame sets only in this announced phase '

@@ -27,8 +27,8 @@ from std_msgs.msg import String
 
 from volcap_core import qos, topics
 from volcap_core.conversions import MessageConversionError, color_message_to_rgb, numpy_to_image, stamp_to_ns
-from volcap_core.ros import Diagnostics, declare_config, run_node
-from volcap_core.settings import setting
+from volcap_core.ros import Diagnostics, declare_config, run_node, subscribe_color
+from volcap_core.settings import color_transport_setting, setting
 
 from .corrector import CameraCorrection
 
@@ -43,9 +43,7 @@ class ColorCorrectorConfig:
                                  'instead of the calibration\'s colour model ("" = off)', read_only=True)
     reliable: bool = setting(False, 'subscribe reliably with a deeper queue (offline replay: lose no frame)',
                              read_only=True)
-    color_transport: str = setting('raw', 'colour as sensor_msgs/Image on color/image_raw (raw) or JPEG '
-                                   'CompressedImage on color/image_raw/compressed', choices=('raw', 'compressed'),
-                                   read_only=True)
+    color_transport: str = color_transport_setting()
 
 
 class ColorCorrector(Node):
@@ -68,10 +66,7 @@ class ColorCorrector(Node):
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
         inputs = qos.EVERY_FRAME if self.cfg.reliable else qos.CAMERA
         self.create_subscription(CameraInfo, topics.COLOR_INFO, self._on_info, inputs)
-        if self.cfg.color_transport == 'compressed':
-            self.create_subscription(CompressedImage, topics.COLOR_COMPRESSED, self._on_image, inputs)
-        else:
-            self.create_subscription(Image, topics.COLOR_IMAGE, self._on_image, inputs)
+        subscribe_color(self, self.cfg.color_transport, self._on_image, inputs)
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'color_corrector started for {camera}')
 

@@ -1,5 +1,6 @@
 """Small rclpy helpers shared by the nodes: start-up and shutdown, parameters declared from a
-config dataclass (``volcap_core.settings``), and diagnostics on ``volcap/diagnostics``."""
+config dataclass (``volcap_core.settings``), diagnostics on ``volcap/diagnostics``, the colour
+subscription of either transport and a ``/tf_static`` listener."""
 from __future__ import annotations
 
 import time
@@ -12,9 +13,12 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from sensor_msgs.msg import CompressedImage, Image
+from tf2_msgs.msg import TFMessage
 
 from . import qos, settings, topics, transport
-from .conversions import diagnostic_array, diagnostic_status
+from .conversions import diagnostic_array, diagnostic_status, tf_message_to_transforms
+from .tf import StaticTransforms
 
 RCLError = _rclpy.RCLError
 
@@ -114,3 +118,31 @@ class Diagnostics:
     def _republish(self) -> None:
         if self._last is not None and self.node.context.ok():
             self.pub.publish(diagnostic_array([self._last], time.time_ns()))
+
+
+def subscribe_color(node: Node, transport: str, callback: Callable, profile, camera: str = ''):
+    """The colour subscription of a ``color_transport`` setting: ``color/image_raw`` (Image) or
+    ``color/image_raw/compressed`` (JPEG CompressedImage), under ``camera`` when given."""
+    kind, topic = (CompressedImage, topics.COLOR_COMPRESSED) if transport == 'compressed' \
+        else (Image, topics.COLOR_IMAGE)
+    return node.create_subscription(kind, topics.camera_topic(camera, topic) if camera else topic, callback, profile)
+
+
+class StaticTransformListener:
+    """The drivers' ``/tf_static`` gathered into ``transforms`` (what tf2's static listener
+    does); ``on_update`` runs after each message. Unusable transforms are reported, not fatal."""
+
+    def __init__(self, node: Node, diagnostics: Diagnostics, on_update: Callable[[], None] | None = None):
+        self.transforms = StaticTransforms()
+        self.diagnostics = diagnostics
+        self.on_update = on_update
+        node.create_subscription(TFMessage, '/' + topics.TF_STATIC, self._on_message, qos.TF_STATIC)
+
+    def _on_message(self, msg: TFMessage) -> None:
+        try:
+            for parent, child, T in tf_message_to_transforms(msg):
+                self.transforms.add(parent, child, T)
+        except ValueError as e:
+            self.diagnostics.report('warn', f'unusable /tf_static transform: {e}')
+        if self.on_update is not None:
+            self.on_update()

@@ -170,3 +170,16 @@ def markdown_table(cls) -> str:
         rows.append(f'| `{s.name}` | `{text}` | {s.range_text} | {s.description}'
                     f'{" (read-only)" if s.read_only else ""} |')
     return '\n'.join(rows)
+
+
+# Settings every node on camera streams shares (one definition, so their docs agree).
+COLOR_TRANSPORTS = ('raw', 'compressed')
+
+
+def color_transport_setting():
+    return setting('raw', 'colour as sensor_msgs/Image on color/image_raw (raw) or JPEG CompressedImage on '
+                   'color/image_raw/compressed', choices=COLOR_TRANSPORTS, read_only=True)
+
+
+def tf_prefix_setting():
+    return setting('', 'prepended to the camera_info frame ids when looking them up on /tf_static', read_only=True)

@@ -24,7 +24,6 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from tf2_msgs.msg import TFMessage
 
 from volcap_core import qos, topics
 from volcap_core.camera import depth_to_millimetres
@@ -37,12 +36,10 @@ from volcap_core.conversions import (
     numpy_to_image,
     points_to_pointcloud2,
     stamp_to_ns,
-    tf_message_to_transforms,
 )
 from volcap_core.rig import Rig
-from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.ros import Diagnostics, StaticTransformListener, declare_config, run_node, subscribe_color
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
-from volcap_core.tf import StaticTransforms
 
 from .mask import BackgroundModel
 from .pipeline import DepthFilterConfig
@@ -72,7 +69,6 @@ class DepthFilter(Node):
         self.sync = FrameSetSynchronizer([self.camera], ('color', 'depth'),
                                          tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
-        self.static_transforms = StaticTransforms()
         self.info_frames: dict[str, str] = {}     # stream -> camera_info frame id
         self.figures_requested = False
         self.processed = self.skipped = 0
@@ -84,16 +80,12 @@ class DepthFilter(Node):
         if self.node_cfg.rig_file:
             self._load_rig_file(self.node_cfg.rig_file)
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
-        self.create_subscription(TFMessage, '/' + topics.TF_STATIC, self._on_tf_static, qos.TF_STATIC)
+        self.tf = StaticTransformListener(self, self.diagnostics, self._look_up_extrinsic)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         inputs = qos.EVERY_FRAME if self.node_cfg.reliable else qos.CAMERA
         self.create_subscription(CameraInfo, topics.COLOR_INFO, lambda m: self._on_info(m, 'color'), inputs)
         self.create_subscription(CameraInfo, topics.DEPTH_INFO, lambda m: self._on_info(m, 'depth'), inputs)
-        if self.node_cfg.color_transport == 'compressed':
-            self.create_subscription(CompressedImage, topics.COLOR_COMPRESSED, lambda m: self._on_image(m, 'color'),
-                                     inputs)
-        else:
-            self.create_subscription(Image, topics.COLOR_IMAGE, lambda m: self._on_image(m, 'color'), inputs)
+        subscribe_color(self, self.node_cfg.color_transport, lambda m: self._on_image(m, 'color'), inputs)
         self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), inputs)
         self.pub_depth = self.create_publisher(Image, topics.DEPTH_CLEAN, qos.DRIVER)
         self.pub_info = self.create_publisher(CameraInfo, topics.DEPTH_CLEAN_INFO, qos.DRIVER)
@@ -123,19 +115,11 @@ class DepthFilter(Node):
         except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
             self.diagnostics.report('error', f'unusable rig description: {e}')
 
-    def _on_tf_static(self, msg: TFMessage) -> None:
-        try:
-            for parent, child, T in tf_message_to_transforms(msg):
-                self.static_transforms.add(parent, child, T)
-        except ValueError as e:
-            self.diagnostics.report('warn', f'{self.camera}: unusable /tf_static transform: {e}')
-        self._look_up_extrinsic()
-
     def _look_up_extrinsic(self) -> None:
         color, depth = self.info_frames.get('color'), self.info_frames.get('depth')
         if self.session.rig is not None or color is None or depth is None or color == depth:
             return
-        T = self.static_transforms.depth_to_color(color, depth, self.node_cfg.tf_prefix)
+        T = self.tf.transforms.depth_to_color(color, depth, self.node_cfg.tf_prefix)
         if T is not None:
             if self.session.extrinsic is None:
                 self.get_logger().info(f'depth-to-colour extrinsic {depth} -> {color} from /tf_static')

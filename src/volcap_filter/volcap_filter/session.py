@@ -21,7 +21,7 @@ import numpy as np
 from volcap_core import topics
 from volcap_core.camera import CameraModel
 from volcap_core.rig import Rig
-from volcap_core.settings import setting
+from volcap_core.settings import color_transport_setting, setting, tf_prefix_setting
 
 from .mask import BackgroundModel
 from .pipeline import CleanResult, DepthCleaner, DepthFilterConfig
@@ -35,11 +35,8 @@ class DepthFilterNodeConfig:
                           read_only=True)
     rig_file: str = setting('', 'rig description YAML (`volcap rig`) giving the depth-to-colour extrinsic '
                             '(empty: /volcap/rig or /tf_static)', read_only=True)
-    tf_prefix: str = setting('', 'prepended to the camera_info frame ids when looking them up on /tf_static',
-                             read_only=True)
-    color_transport: str = setting('raw', 'colour as sensor_msgs/Image on color/image_raw (raw) or JPEG '
-                                   'CompressedImage on color/image_raw/compressed', choices=('raw', 'compressed'),
-                                   read_only=True)
+    tf_prefix: str = tf_prefix_setting()
+    color_transport: str = color_transport_setting()
     output_width: int = setting(0, 'cleaned depth width (0 = the colour width)', 0, 8192, read_only=True)
     output_height: int = setting(0, 'cleaned depth height (0 = the colour height)', 0, 8192, read_only=True)
     clean_plate_frames: int = setting(10, 'frames gathered by ~/capture_clean_plate', 1, 1000)
