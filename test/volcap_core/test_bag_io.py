@@ -10,7 +10,7 @@ from std_msgs.msg import String
 
 from volcap_core.bag_io import BagError, BagReader, BagWriter, message_class
 from volcap_core.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
-from volcap_driver.playback import Schedule, output_topic, parse_remaps, restamp_cdr
+from volcap_driver.playback import Schedule, output_topic, parse_counts, parse_remaps, restamp_cdr
 
 
 def write_sample(path, n=6, compression='none', shape=(48, 64)):
@@ -134,6 +134,10 @@ def test_topic_mapping_and_schedule():
     assert output_topic('volcap/rig', {}, '') == 'volcap/rig'
     with pytest.raises(ValueError, match='FROM:=TO'):
         parse_remaps(['nonsense'])
+    assert parse_counts(['/cam0/rgb/image_raw/compressed=3', 'volcap/phase=9']) == {
+        'cam0/rgb/image_raw/compressed': 3, 'volcap/phase': 9}
+    with pytest.raises(ValueError, match='TOPIC=N'):
+        parse_counts(['cam0/color/image_raw=two'])
     s = Schedule(bag_start_ns=1000, wall_start_ns=50, rate=2.0)
     assert s.wall_time(3000) == 1050
     assert Schedule(1000, 50, 1.0, as_fast_as_possible=True).wall_time(10**12) == 50

@@ -99,15 +99,15 @@ def cmd_monitor(args) -> int:
 
 def add_parsers(sub) -> None:
     r = sub.add_parser('rig', help='a rig description (rig.yaml) from Azure Kinect or Orbbec factory data')
-    r.add_argument('--k4a', action='append', default=[], metavar='CAMERA=calibration.json',
+    r.add_argument('--k4a', '--from-k4a', dest='k4a', action='append', default=[], metavar='CAMERA=calibration.json',
                    help='an Azure Kinect factory calibration (k4arecorder attachment or device dump); repeatable')
     r.add_argument('--color-mode', default='720P', help='Azure Kinect colour mode of --k4a cameras')
     r.add_argument('--depth-mode', default='NFOV_UNBINNED', help='Azure Kinect depth mode of --k4a cameras')
-    r.add_argument('--orbbec', action='append', default=[],
+    r.add_argument('--orbbec', '--from-orbbec', dest='orbbec', action='append', default=[],
                    metavar='CAMERA=depth_to_color.yaml,color_info.yaml,depth_info.yaml',
                    help='OrbbecSDK_ROS2 topics saved with `ros2 topic echo --once` (enable_publish_extrinsic:=true '
                         'for depth_to_color); repeatable')
-    r.add_argument('--bag', help='a recording of the drivers: camera_info and /tf_static of every camera')
+    r.add_argument('--bag', '--from-bag', dest='bag', help='a recording of the drivers: camera_info and /tf_static of every camera')
     r.add_argument('--name', default='volcap', help='rig name')
     r.add_argument('--out', required=True, help='rig YAML to write')
     r.set_defaults(func=cmd_rig)

@@ -98,8 +98,17 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True,
               'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
+    # How many subscribers each played topic gets in this graph: the player waits for all of them.
+    expected = {t: 0 for t in played}
+    for c in cameras:
+        expected[layout[c]['color']] = 2 + (c == cameras[0])      # filter, corrector; the probe on the first
+        expected[layout[c]['color_info']] = 2
+        expected[layout[c]['depth']] = expected[layout[c]['depth_info']] = 1
+    for t in (topics.RIG, topics.TF_STATIC):
+        expected[t] = len(cameras)
+    expected[topics.PHASE] = len(cameras) + 1                      # the filters and the fusion
     player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,
-              'exit_when_done': not cfg.composed}
+              'exit_when_done': not cfg.composed, 'subscribers': [f'{t}={n}' for t, n in expected.items() if n]}
     # The nodes sit on whatever topics the bag holds (volcap's or a vendor driver's), as on a rig.
     maps = {c: stream_remaps(c, layout[c]) for c in cameras}
     filters = {c: {'reliable': True, **maps[c][1]} for c in cameras}

@@ -21,7 +21,15 @@ from volcap_core import qos, topics
 from volcap_core.bag_io import BagError, BagReader, message_class
 from volcap_core.ros import Diagnostics, declare_config, run_node
 
-from .playback import HEADER_FIRST_TYPES, BagPlayerConfig, Schedule, output_topic, parse_remaps, restamp_cdr
+from .playback import (
+    HEADER_FIRST_TYPES,
+    BagPlayerConfig,
+    Schedule,
+    output_topic,
+    parse_counts,
+    parse_remaps,
+    restamp_cdr,
+)
 
 READ_AHEAD = 96   # messages: three 8-camera frame sets of colour, depth and their infos
 # At the end, how long reliable subscribers get to acknowledge the last messages before the node
@@ -37,6 +45,7 @@ class BagPlayer(Node):
         c = self.cfg
         self.bag, self.fast, self.loop, self.start_offset = c.bag, c.as_fast_as_possible, c.loop, c.start_offset
         self.topic_filter, self.remaps = c.topics, parse_remaps([r for r in c.remap if r])
+        self.expected_subscribers = parse_counts([r for r in c.subscribers if r])
         self.namespace_prefix, self.extra_latched, self.restamp = c.namespace, c.latched_topics, c.restamp
         self.exit_when_done, self.wait_for_subscribers = c.exit_when_done, c.wait_for_subscribers
         self.diagnostics = Diagnostics(self, 'playback')
@@ -167,22 +176,23 @@ class BagPlayer(Node):
             yield item
 
     def _await_subscribers(self, pubs: dict) -> None:
-        """Until every topic has a subscriber and every subscription the graph shows on it has
-        matched this player's publisher: a subscriber still being discovered (a colour corrector
-        that started a moment after the depth filter on the same topic) would miss the first
-        frames, which are volatile."""
+        """Until every topic has matched its expected subscribers (``subscribers``, else one) and
+        every subscription the graph shows on it: a subscriber still being discovered (a colour
+        corrector that started a moment after the depth filter on the same topic) would miss the
+        first frames, which are volatile."""
+        def waiting():
+            return [t for t, p in pubs.items()
+                    if p.get_subscription_count() < max(self.expected_subscribers.get(t, 1),
+                                                         self.count_subscribers(p.topic_name))]
         deadline = time.monotonic() + self.wait_for_subscribers
         while time.monotonic() < deadline and not self._stop.is_set():
-            waiting = [t for t, p in pubs.items()
-                       if p.get_subscription_count() == 0 or p.get_subscription_count() < self.count_subscribers(p.topic_name)]
-            if not waiting:
+            if not waiting():
                 return
             self._stop.wait(0.05)
-        if self.wait_for_subscribers > 0:
-            waiting = [t for t, p in pubs.items() if p.get_subscription_count() == 0]
-            if waiting:
-                self.diagnostics.report('warn', f'starting without subscribers on {len(waiting)} topics, '
-                                                f'e.g. {waiting[0]}')
+        if self.wait_for_subscribers > 0 and waiting():
+            late = waiting()
+            self.diagnostics.report('warn', f'starting with too few subscribers on {len(late)} topics, e.g. {late[0]} '
+                                            f'({pubs[late[0]].get_subscription_count()})')
 
 
 def main(args=None):

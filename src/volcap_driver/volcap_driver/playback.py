@@ -24,6 +24,17 @@ def parse_remaps(rules: list[str]) -> dict[str, str]:
     return out
 
 
+def parse_counts(rules: list[str]) -> dict[str, int]:
+    """``['cam0/color/image_raw=2', ...]`` -> mapping (topics without a leading /)."""
+    out = {}
+    for rule in rules:
+        topic, sep, count = rule.rpartition('=')
+        if not sep or not topic.strip() or not count.strip().isdigit():
+            raise ValueError(f'subscriber count {rule!r} must look like TOPIC=N')
+        out[topic.strip().lstrip('/')] = int(count)
+    return out
+
+
 def output_topic(topic: str, remaps: dict[str, str], namespace: str = '') -> str:
     """Where a bag topic is published: remapped if a rule names it, else put under ``namespace``."""
     bare = topic.lstrip('/')
@@ -54,6 +65,9 @@ class BagPlayerConfig:
     wait_for_subscribers: float = setting(0.0, 'wait up to this many seconds for every played topic to have a '
                                                'subscriber before starting (0: start at once)', 0.0, 3600.0,
                                           read_only=True)
+    subscribers: tuple[str, ...] = setting(('',), 'TOPIC=N: with wait_for_subscribers, wait for N subscribers '
+                                                  'on a topic (a graph whose nodes are still being discovered '
+                                                  'would miss the first frames)', read_only=True)
 
 
 @dataclass
