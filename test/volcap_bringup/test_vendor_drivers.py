@@ -19,7 +19,7 @@ from volcap_bringup.graph import camera_remaps, rig_graph
 from volcap_bringup.processes import start_node
 from volcap_core import qos, topics
 from volcap_core.bag_io import BagReader
-from volcap_core.calibration import Calibration
+from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.conversions import image_to_numpy
 from volcap_core.frames import frame_sets, read_rig
 from volcap_core.poses import invert
@@ -61,20 +61,28 @@ class VendorDriver:
 @pytest.mark.parametrize('layout,registered,color_format', [
     ('azure_kinect', False, 'jpeg'), ('azure_kinect', True, 'raw'), ('orbbec', False, 'raw'),
     ('orbbec', True, 'jpeg')])
-def test_filter_and_corrector_on_a_vendor_driver_with_remaps_only(k4a_bag, layout, registered, color_format,
-                                                                  ros_context, procs, probe_factory):
+def test_filter_corrector_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag, layout, registered, color_format,
+                                                                         ros_context, procs, probe_factory):
+    """One real camera: cleaned depth, corrected colour and, from that camera alone, a mesh."""
     with BagReader(k4a_bag) as reader:
         cam = read_rig(reader).cameras[0]
     frame = next(frame_sets(k4a_bag)).cameras['cam0']
     params = {'color_transport': 'compressed'} if color_format == 'jpeg' else {}
     remaps = camera_remaps(layout, registered)
     outputs = [('/cam0/' + topics.DEPTH_CLEAN, Image), ('/cam0/' + topics.DEPTH_CLEAN_INFO, CameraInfo),
-               ('/cam0/' + topics.COLOR_CORRECTED, Image), ('/cam0/' + topics.COLOR_CORRECTED_INFO, CameraInfo)]
+               ('/cam0/' + topics.COLOR_CORRECTED, Image), ('/cam0/' + topics.COLOR_CORRECTED_INFO, CameraInfo),
+               ('/' + topics.MESH, Marker)]
     probe = probe_factory([(t, kind, qos.EVERY_FRAME) for t, kind in outputs]
                           + [('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     try:
         procs.append(start_node('volcap_filter', 'depth_filter', params, namespace='cam0', remaps=remaps))
         procs.append(start_node('volcap_color', 'color_corrector', params, namespace='cam0', remaps=remaps))
+        procs.append(start_node('volcap_fusion', 'tsdf_fusion', {'min_cameras': 1, 'voxel_size': 0.01}))
+        # the world is this camera's colour frame: a calibration as the service would latch it
+        calibration = Calibration('cam0', frame_ids(layout, 'cam0')[0],
+                                  {'cam0': CameraCalibration(np.eye(4), frame_ids(layout, 'cam0')[0])})
+        latched = probe.node.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
+        latched.publish(String(data=calibration.to_yaml()))
         driver = VendorDriver(probe.node, layout, [cam], registered, color_format)
         end = time.monotonic() + 90
         while time.monotonic() < end and not all(probe.got[t] for t, _ in outputs):
@@ -100,6 +108,8 @@ def test_filter_and_corrector_on_a_vendor_driver_with_remaps_only(k4a_bag, layou
     assert corrected.encoding == 'rgb8' and (corrected.height, corrected.width) == (720, 1280)
     info = probe.got['/cam0/' + topics.COLOR_CORRECTED_INFO][-1][1]
     assert info.header.stamp == corrected.header.stamp and abs(info.k[0] - cam.color.fx) < 1e-6
+    mesh = probe.got['/' + topics.MESH][-1][1]
+    assert len(mesh.points) > 3000 and mesh.header.frame_id == color_frame     # one camera, default threshold
 
 
 def test_a_two_camera_rig_of_vendor_drivers_is_calibrated_and_fused(calib_bag, ros_context, procs, probe_factory,
@@ -166,6 +176,10 @@ def test_a_bag_recorded_from_the_drivers_goes_through_the_offline_tools(calib_ba
     metrics = json.loads((out / 'metrics.json').read_text())
     assert metrics['capture_frame_sets_in_bag'] == sets and metrics['frames_written'] == sets   # no phase: all capture
     assert all(f['triangles'] > 1000 for f in metrics['frames'])
+
+    color = tmp_path / 'color.json'
+    assert main(['eval', 'color', str(vendor), '--calibration', str(calibration), '--json', str(color), '--quiet']) == 0
+    assert json.loads(color.read_text())['methods']
 
     real = tmp_path / 'k4a_drivers'
     write_vendor_bag(k4a_bag, real, 'orbbec', color_format='jpeg', color_delay_ns=COLOR_DELAY_NS)
