@@ -29,7 +29,7 @@ $(STAMP): requirements.txt constraints.txt tools/tf2_msgs/requirements.txt $(wil
 	  -c constraints.txt
 	@# tf2_msgs (for /tf_static) is on no registry here: build it with the rosidl toolchain into the venv,
 	@# whose lib/ the ROS wheels already put on LD_LIBRARY_PATH.
-	@echo "building tf2_msgs into $(VENV) (rosidl, about 2 minutes)"
+	@echo "building tf2_msgs into $(VENV) with rosidl (under a minute)"
 	@rm -rf build/tf2_msgs
 	@PATH="$(CURDIR)/$(VENV)/bin:$$PATH" AMENT_PREFIX_PATH="$(CURDIR)/$(VENV)" CMAKE_PREFIX_PATH="$(CURDIR)/$(VENV)" \
 	  sh -c 'cmake -S tools/tf2_msgs -B build/tf2_msgs -DCMAKE_INSTALL_PREFIX="$(CURDIR)/$(VENV)" \
