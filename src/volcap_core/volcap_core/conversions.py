@@ -121,7 +121,7 @@ def compressed_to_rgb(msg: CompressedImage) -> np.ndarray:
     bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     if bgr is None:
         raise MessageConversionError(f'cannot decode {buf.size}-byte compressed image (format {msg.format!r})')
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return bgr[:, :, ::-1]   # a view, as color_to_rgb gives for bgr8: no 2.7 MB copy per frame
 
 
 def rgb_to_compressed(rgb: np.ndarray, stamp_ns: int = 0, frame_id: str = '', quality: int = 90) -> CompressedImage:

@@ -104,10 +104,10 @@ def rig_camera_from_k4a(calibration: dict | str | Path, name: str, color_mode: s
                      T_color_depth, serial)
 
 
-def _echoed(text_or_path: str | Path) -> dict:
-    """The first message of ``ros2 topic echo`` output (YAML documents separated by ``---``)."""
-    text = Path(text_or_path).read_text() if isinstance(text_or_path, Path) or '\n' not in str(text_or_path) \
-        else str(text_or_path)
+def _echoed(source: str | Path) -> dict:
+    """The first message of ``ros2 topic echo`` output (YAML documents separated by ``---``): a
+    file (Path) or its text (str)."""
+    text = source.read_text() if isinstance(source, Path) else source
     for doc in yaml.safe_load_all(text):
         if isinstance(doc, dict):
             return doc
@@ -128,7 +128,7 @@ def camera_model_from_echo(info: dict) -> CameraModel:
 def rig_camera_from_orbbec(name: str, extrinsics, color_info, depth_info, serial: str = '') -> RigCamera:
     """RigCamera from OrbbecSDK_ROS2's ``depth_to_color`` (orbbec_camera_msgs/Extrinsics: row-major
     rotation, translation in metres, depth to colour) and the two camera_info messages, each as
-    ``ros2 topic echo --once`` writes it (text, a path, or the parsed dict)."""
+    ``ros2 topic echo --once`` writes it (a Path, its text, or the parsed dict)."""
     ex, ci, di = (m if isinstance(m, dict) else _echoed(m) for m in (extrinsics, color_info, depth_info))
     try:
         R = np.reshape([float(v) for v in ex['rotation']], (3, 3))

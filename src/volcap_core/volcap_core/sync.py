@@ -42,16 +42,20 @@ class PeriodEstimate:
     def __init__(self, window: int = 64):
         self._last: dict[Hashable, int] = {}
         self._intervals: deque[int] = deque(maxlen=window)
+        self._median: int | None = None     # recomputed only after a new interval
 
     def add(self, key: Hashable, stamp_ns: int) -> None:
         last = self._last.get(key)
         self._last[key] = stamp_ns
         if last is not None and 0 < stamp_ns - last < 1_000_000_000:
             self._intervals.append(stamp_ns - last)
+            self._median = None
 
     @property
     def period_ns(self) -> int | None:
-        return int(np.median(self._intervals)) if self._intervals else None
+        if self._median is None and self._intervals:
+            self._median = int(np.median(self._intervals))
+        return self._median
 
 
 @dataclass
@@ -121,10 +125,11 @@ class FrameSetSynchronizer:
             self.stats.unknown += 1
             return []
         self.period.add(key, stamp_ns)
-        if any(abs(stamp_ns - s) <= self.tolerance_ns for s in self._emitted):
+        tolerance = self.tolerance_ns
+        if any(abs(stamp_ns - s) <= tolerance for s in self._emitted):
             self.stats.late += 1
             return []
-        target = min((p for p in self._pending if abs(p.stamp_ns - stamp_ns) <= self.tolerance_ns),
+        target = min((p for p in self._pending if abs(p.stamp_ns - stamp_ns) <= tolerance),
                      key=lambda p: abs(p.stamp_ns - stamp_ns), default=None)
         out: list[FrameSet] = []
         if target is None:

@@ -73,7 +73,8 @@ def cleaned_frame_sets(bag: str | Path, configs: dict[str, DepthFilterConfig], c
                 for o in s.add(pair):
                     if o.kind == 'cleaned':
                         out[config][name] = CleanedCamera(frame, o.result, o.cleaner)
-                        kept[config] += int(np.count_nonzero(o.result.depth))
+                        if captures < 3:   # only the first sets are checked (_refuse_empty)
+                            kept[config] += int(np.count_nonzero(o.result.depth))
                     elif o.kind == 'failed':
                         raise ValueError(o.message)
         if fs.phase == CAPTURE:

@@ -65,7 +65,8 @@ def static_transforms(layout: str, name: str, cam: RigCamera) -> list[tuple[str,
     color_frame, depth_frame = frame_ids(layout, name)
     T_depth_color = invert(cam.T_color_depth)
     if layout == 'azure_kinect':
-        # camera_base is the device's mechanical centre, a few cm from the depth camera
+        # camera_base and imu_link only complete the driver's tree (volcap never looks them up):
+        # illustrative values of the device's order (depth camera tilted 6 degrees), not factory data
         T_base_depth = make_transform(T_BODY_OPTICAL[:3, :3] @ Rotation.from_euler('x', -6, degrees=True).as_matrix(),
                                       [0.0, 0.0, 0.0018])
         return [(f'{name}_camera_base', depth_frame, T_base_depth),
