@@ -14,6 +14,7 @@ setup(
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob(package_name + '/config/*')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+        ('lib/' + package_name, ['scripts/live_controller']),     # for `ros2 run`
     ],
     install_requires=['setuptools'],
     zip_safe=True,

@@ -58,12 +58,17 @@ def test_launch_starts_the_rig_graph(launch_file):
     started = [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['namespace']) for n in nodes]
     assert started == [('volcap_calib', 'calibration_service', None)] \
         + [('volcap_filter', 'depth_filter', f'cam{i}') for i in range(3)] \
-        + [('volcap_color', 'color_corrector', f'cam{i}') for i in range(3)] + [('volcap_fusion', 'tsdf_fusion', None)]
+        + [('volcap_color', 'color_corrector', f'cam{i}') for i in range(3)] + [('volcap_fusion', 'tsdf_fusion', None)] \
+        + [('volcap_bringup', 'live_controller', None)]
     assert all((n.kwargs['package'], n.kwargs['executable']) in NODES for n in nodes)   # every one is a real node
     params = [n.kwargs['parameters'][0] for n in nodes]
     assert params[0] == {'output': '/rig/calibration.yaml'}
-    assert params[1] == {}      # depth_filter's own default: cleaned depth at the colour size
-    assert params[-1] == {'voxel_size': 0.004, 'output_dir': '/takes/1', 'device': 'auto'}
+    assert params[1] == {'output_scale': 0.5}      # live: cleaned depth at half the colour size
+    assert params[-2] == {'voxel_size': 0.01, 'output_dir': '/takes/1', 'device': 'auto', 'frame_timeout_ms': 600.0}
+    assert params[-1] == {'cameras': ['cam0', 'cam1', 'cam2']}
+    offline = [n.kwargs['parameters'][0] for n in _launched(launch_file, cameras='3', live='false')]
+    assert offline[1] == {'output_scale': 1.0}     # every frame set, at the colour size, 4 mm voxels
+    assert offline[-1] == {'voxel_size': 0.004, 'output_dir': '', 'device': 'auto'}
 
 
 def test_launch_replays_a_bag_as_the_frame_source(launch_file):
@@ -71,10 +76,10 @@ def test_launch_replays_a_bag_as_the_frame_source(launch_file):
     first = nodes[0].kwargs
     assert (first['package'], first['executable']) == ('volcap_driver', 'bag_player')
     assert first['parameters'] == [{'bag': '/captures/studio', 'rate': 0.5}]
-    assert nodes[-1].kwargs['parameters'][0]['voxel_size'] == 0.01
+    assert nodes[-2].kwargs['parameters'][0]['voxel_size'] == 0.01
     half = _launched(launch_file, depth_width='640', depth_height='360')
-    assert half[1].kwargs['parameters'] == [{'output_width': 640, 'output_height': 360}]
-    assert len(nodes) == 1 + 1 + 2 * 2 + 1
+    assert half[1].kwargs['parameters'] == [{'output_width': 640, 'output_height': 360, 'output_scale': 0.5}]
+    assert len(nodes) == 1 + 1 + 2 * 2 + 1 + 1
 
 
 def test_launch_on_vendor_drivers_remaps_every_camera(launch_file):
@@ -86,10 +91,11 @@ def test_launch_on_vendor_drivers_remaps_every_camera(launch_file):
         'color/image_raw': 'rgb/image_raw', 'color/image_raw/compressed': 'rgb/image_raw/compressed',
         'color/camera_info': 'rgb/camera_info', 'depth/image_raw': 'depth_to_rgb/image_raw',
         'depth/camera_info': 'depth_to_rgb/camera_info'}
-    assert depth_filter['parameters'] == [{'color_transport': 'compressed', 'rig_file': '/rig/rig.yaml'}]
+    assert depth_filter['parameters'] == [{'output_scale': 0.5, 'color_transport': 'compressed', 'rig_file': '/rig/rig.yaml'}]
     assert by_name[('color_corrector', 'cam0')]['parameters'] == [{'color_transport': 'compressed'}]
     service = dict(by_name[('calibration_service', None)]['remappings'])
     assert service['cam1/color/image_raw/compressed'] == 'cam1/rgb/image_raw/compressed'
     assert by_name[('tsdf_fusion', None)]['remappings'] == []
+    assert dict(by_name[('live_controller', None)]['remappings'])['cam1/color/camera_info'] == 'cam1/rgb/camera_info'
     orbbec = _launched(launch_file, cameras='1', driver='orbbec')
     assert all(n.kwargs['remappings'] == [] for n in orbbec)      # Orbbec uses volcap's names

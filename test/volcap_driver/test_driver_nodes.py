@@ -159,3 +159,19 @@ def test_start_offset_and_loop(studio_bag, probe_factory, procs, play):
     stamps = [stamp_to_ns(m.header.stamp) for _, m in probe.got['cam4/color/camera_info']]
     assert set(stamps) == capture            # only the capture part, again and again
     assert stop(procs.pop()) == 0
+
+
+def test_late_sets_are_dropped_whole():
+    """A player that fell behind drops whole frame sets (colour and depth stamped 12 ms apart stay
+    together) and sends the next set that is on time."""
+    from volcap_driver.playback import LateSetFilter
+    period, half = 33_333_333, 16_666_666
+    late = LateSetFilter(max_lag_ns=100_000_000)
+    sent = []
+    for k, lag_ms in enumerate((0, 150, 150, 20)):
+        target = k * period
+        now = target + lag_ms * 1_000_000
+        sent.append([late.send(target + offset, now + offset, half) for offset in (0, 12_000_000, 12_000_000)])
+    assert sent == [[True] * 3, [False] * 3, [False] * 3, [True] * 3]
+    assert late.dropped_sets == 2
+    assert all(LateSetFilter(0).send(0, 10**12, half) for _ in range(3))

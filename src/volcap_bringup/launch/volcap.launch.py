@@ -7,6 +7,10 @@ player as the frame source instead of camera drivers.
     ros2 launch volcap_bringup volcap.launch.py driver:=azure_kinect registered:=true \\
         color_format:=jpeg calibration:=/rig/calibration.yaml
 
+Live by default, as `volcap live`: the live controller admits only the frame sets the graph can
+process (the same ones in every stage), the cleaned depth is half the colour size and the voxels
+are 10 mm; ``live:=false`` processes every frame set at full depth size and 4 mm voxels.
+
 ``driver`` remaps every camera's topics onto a vendor driver's running in ``cam0``..``camN-1``
 (docs/driver.md, "On a rig"); the drivers' ``/tf_static`` gives the depth-to-colour extrinsic.
 
@@ -17,7 +21,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from volcap_bringup.graph import rig_graph
+from volcap_bringup.graph import LIVE_DEPTH_SCALE, LIVE_FRAME_TIMEOUT_MS, LIVE_VOXEL, live_controller, rig_graph
 from volcap_fusion import VOXEL_SIZE
 
 ARGUMENTS = {
@@ -25,7 +29,9 @@ ARGUMENTS = {
     'calibration': ('calibration.yaml', 'rig calibration; the calibration service publishes it on start'),
     'bag': ('', 'a recorded session to replay as the frame source (empty: camera drivers run elsewhere)'),
     'rate': ('1.0', 'bag playback speed'),
-    'voxel_size': (str(VOXEL_SIZE), 'TSDF voxel size (m)'),
+    'live': ('true', 'admission control (live_controller), half-size cleaned depth, 10 mm voxels by default'),
+    'voxel_size': ('', f'TSDF voxel size (m; empty: {LIVE_VOXEL} live, {VOXEL_SIZE} otherwise)'),
+    'depth_scale': ('', 'cleaned depth size as a fraction of the colour size (empty: 0.5 live, 1 otherwise)'),
     'output_dir': ('', 'write the PLY/GLB sequence here (empty: publish only)'),
     'depth_width': ('0', 'cleaned depth width (0: the colour width, the depth_filter default)'),
     'depth_height': ('0', 'cleaned depth height (0: the colour height)'),
@@ -45,9 +51,13 @@ def _nodes(context):
     if arg['bag']:
         source = ('volcap_driver', 'bag_player', {'bag': arg['bag'], 'rate': float(arg['rate'])})
     # 0 leaves the node's own default (the colour size)
+    live = arg['live'].lower() in ('true', '1', 'yes')
     depth_size = {k: int(arg[a]) for k, a in (('output_width', 'depth_width'), ('output_height', 'depth_height'))
                   if int(arg[a])}
-    fusion = {'voxel_size': float(arg['voxel_size']), 'output_dir': arg['output_dir'], 'device': arg['device']}
+    depth_size['output_scale'] = float(arg['depth_scale'] or (LIVE_DEPTH_SCALE if live else 1.0))
+    voxel = float(arg['voxel_size'] or (LIVE_VOXEL if live else VOXEL_SIZE))
+    fusion = {'voxel_size': voxel, 'output_dir': arg['output_dir'], 'device': arg['device'],
+              **({'frame_timeout_ms': LIVE_FRAME_TIMEOUT_MS} if live else {})}
     # Only what differs from the nodes' defaults, so their own defaults stay in one place.
     inputs = {**({'color_transport': 'compressed'} if arg['color_format'] == 'jpeg' else {}),
               **({'rig_file': arg['rig_file']} if arg['rig_file'] else {})}
@@ -55,6 +65,8 @@ def _nodes(context):
                       {'color_transport': 'compressed'} if arg['color_format'] == 'jpeg' else {}, fusion,
                       calibration_service={'output': arg['calibration'], **inputs}, driver=arg['driver'],
                       registered=arg['registered'].lower() in ('true', '1', 'yes'))
+    if live:
+        graph.append(live_controller(cameras, {}, arg['driver'], arg['registered'].lower() in ('true', '1', 'yes')))
     return [Node(package=package, executable=executable, namespace=namespace or None, parameters=[params],
                  remappings=list(remaps.items()), output='screen')
             for package, executable, namespace, params, remaps in graph]

@@ -1,8 +1,10 @@
-"""`volcap run`, `volcap eval fusion` and `volcap fuse-frames`."""
+"""`volcap run`, `volcap live`, `volcap eval fusion` and `volcap fuse-frames`."""
 from __future__ import annotations
 
 from volcap_core.files import write_json
 from volcap_fusion import VOXEL_SIZE
+
+from .graph import DRIVERS
 
 
 def cmd_run(args) -> int:
@@ -13,6 +15,30 @@ def cmd_run(args) -> int:
     report = run(cfg)
     print('\n'.join(report.lines()))
     return 0 if report.ok else 1
+
+
+def cmd_live(args) -> int:
+    from .live import LiveConfig, run_live, summary_figures
+    from .live_controller import LiveController
+    cfg = LiveConfig(args.calibration, bag=args.bag, driver=args.driver, registered=args.registered,
+                     color_format=args.color_format, cameras=args.cameras.split(',') if args.cameras else None,
+                     voxel_size=args.voxel, depth_scale=args.depth_scale, every=args.every,
+                     latency_budget_ms=args.latency_budget_ms, composed=args.composed, output_dir=args.output_dir or '',
+                     rig_file=args.rig_file or '', seconds=args.seconds, warmup_s=args.warmup)
+    result = run_live(cfg, on_summary=None if args.quiet else lambda s: print(LiveController.line(s), flush=True))
+    result['figures'] = summary_figures(result['summaries'], cfg.warmup_s)
+    f = result['figures']
+    if f['meshes_per_s'] is not None:
+        print(f'after the {cfg.warmup_s:.0f} s warm-up: {f["meshes_per_s"]:.2f} meshes/s from {f["input_fps"]:.1f} '
+              f'sets/s in, {100 * (f["complete_share"] or 0):.0f} % fused from every camera, latency p95 '
+              f'{f["latency_ms_p95_max"] or 0:.0f} ms at most')
+    if args.json:
+        write_json(args.json, result)
+        print(f'wrote {args.json}')
+    failed = {n: c for n, c in result['node_exit_codes'].items() if c not in (0, None)}
+    if failed:
+        print(f'nodes that exited with an error: {failed}')
+    return 1 if failed else 0
 
 
 def cmd_eval_fusion(args) -> int:
@@ -54,6 +80,27 @@ def add_parsers(sub, esub) -> None:
                         'about 1.2 frame sets/s)')
     r.add_argument('--quiet', action='store_true')
     r.set_defaults(func=cmd_run)
+
+    live = sub.add_parser('live', help='the graph on live topics (camera drivers, or a bag looped at real time), '
+                                       'kept real time by admitting only the frame sets it can process')
+    live.add_argument('--calibration', required=True)
+    live.add_argument('--bag', help='loop this bag at real time with fresh stamps instead of camera drivers')
+    live.add_argument('--driver', default='volcap', choices=DRIVERS, help="whose topics the cameras publish")
+    live.add_argument('--registered', action='store_true', help='the driver registers depth to colour')
+    live.add_argument('--color-format', default='raw', choices=('raw', 'jpeg'))
+    live.add_argument('--rig-file', help='rig description YAML for the depth-to-colour extrinsic')
+    live.add_argument('--cameras', help='comma-separated camera namespaces (default: the calibration\'s)')
+    live.add_argument('--voxel', type=float, default=0.01, help='TSDF voxel size (m)')
+    live.add_argument('--depth-scale', type=float, default=0.5, help='cleaned depth size as a fraction of colour')
+    live.add_argument('--every', type=int, default=0, help='admit one frame set in N (0: from the measured load)')
+    live.add_argument('--latency-budget-ms', type=float, default=1000.0)
+    live.add_argument('--composed', action='store_true', help='run every node in this process')
+    live.add_argument('--output-dir', help='also write the sequence here')
+    live.add_argument('--seconds', type=float, help='stop after this long (default: Ctrl-C)')
+    live.add_argument('--warmup', type=float, default=10.0, help='seconds left out of the final figures')
+    live.add_argument('--json', help='write every second\'s figures here at the end')
+    live.add_argument('--quiet', action='store_true')
+    live.set_defaults(func=cmd_live)
 
     e = esub.add_parser('fusion', help='fused sequence against the synthetic ground truth')
     e.add_argument('dir', help='a volcap run output folder')

@@ -19,6 +19,7 @@ NODES = {
     ('volcap_filter', 'depth_filter'): ('volcap_filter.depth_filter_node', 'DepthFilter'),
     ('volcap_color', 'color_corrector'): ('volcap_color.color_corrector_node', 'ColorCorrector'),
     ('volcap_fusion', 'tsdf_fusion'): ('volcap_fusion.tsdf_fusion_node', 'TsdfFusionNode'),
+    ('volcap_bringup', 'live_controller'): ('volcap_bringup.live_controller', 'LiveController'),
 }
 
 

@@ -25,12 +25,11 @@ from visualization_msgs.msg import Marker
 from volcap_core import qos, topics, transport
 from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
-from volcap_core.conversions import stamp_to_ns
+from volcap_core.conversions import cdr_stamp_ns, stamp_to_ns
 from volcap_core.files import write_json
 from volcap_core.frames import camera_topics, read_rig
 from volcap_core.rig import Rig
 from volcap_core.sync import DEFAULT_PERIOD_NS, tolerance_for_period
-from volcap_driver.playback import cdr_stamp_ns
 from volcap_fusion import VOXEL_SIZE
 
 from .graph import NodeSpec, rig_graph, stream_remaps
@@ -98,15 +97,7 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True,
               'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
-    # How many subscribers each played topic gets in this graph: the player waits for all of them.
-    expected = {t: 0 for t in played}
-    for c in cameras:
-        expected[layout[c]['color']] = 2 + (c == cameras[0])      # filter, corrector; the probe on the first
-        expected[layout[c]['color_info']] = 2
-        expected[layout[c]['depth']] = expected[layout[c]['depth_info']] = 1
-    for t in (topics.RIG, topics.TF_STATIC):
-        expected[t] = len(cameras)
-    expected[topics.PHASE] = len(cameras) + 1                      # the filters and the fusion
+    expected = expected_subscribers(cameras, layout, played, probe=True)
     player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,
               'exit_when_done': not cfg.composed, 'subscribers': [f'{t}={n}' for t, n in expected.items() if n]}
     # The nodes sit on whatever topics the bag holds (volcap's or a vendor driver's), as on a rig.
@@ -121,6 +112,25 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
     corrector = {'reliable': True, **maps[cameras[0]][1]}
     return rig_graph(cameras, ('volcap_driver', 'bag_player', player), filters, corrector, fusion,
                      remaps={c: maps[c][0] for c in cameras})
+
+
+def expected_subscribers(cameras: list[str], layout: dict[str, dict[str, str]], played: list[str],
+                         probe: bool = False, controller: bool = False) -> dict[str, int]:
+    """How many subscribers each played topic gets in the rig graph (the player waits for all of
+    them): a filter and a corrector on colour, a filter on depth, the filters and the fusion on
+    the phase; ``probe`` adds the renderer probe on the first colour, ``controller`` the live
+    controller on the first and last cameras' camera_info."""
+    expected = {t: 0 for t in played}
+    for c in cameras:
+        expected[layout[c]['color']] = 2 + (probe and c == cameras[0])
+        watched = controller and c in (cameras[0], cameras[-1])     # the live controller's clock
+        expected[layout[c]['color_info']] = 2 + watched
+        expected[layout[c]['depth']] = 1
+        expected[layout[c]['depth_info']] = 1 + watched
+    for t in (topics.RIG, topics.TF_STATIC):
+        expected[t] = len(cameras)
+    expected[topics.PHASE] = len(cameras) + 1
+    return expected
 
 
 def run_graph(cfg: RunConfig) -> dict:
@@ -157,7 +167,7 @@ def run_graph(cfg: RunConfig) -> dict:
                 executor.add_node(node)
         else:
             procs = [start_node(pkg, exe, params, namespace=ns, remaps=remaps) for pkg, exe, ns, params, remaps in graph]
-        _wait_until_subscribed(executor, probe, cameras, layout, timeout=120.0)
+        wait_until_subscribed(executor, probe, cameras, layout, timeout=120.0)
         if cfg.composed:
             player = compose(*player_node)
             executor.add_node(player)
@@ -218,7 +228,7 @@ def _capture_sets(reader: BagReader, color_topic: str) -> int:
     return sum(1 for k in at if k >= 0 and phases[k] == topics.CAPTURE)
 
 
-def _wait_until_subscribed(executor, probe: Node, cameras: list[str], layout: dict, timeout: float) -> None:
+def wait_until_subscribed(executor, probe: Node, cameras: list[str], layout: dict, timeout: float) -> None:
     """Until every camera's raw colour has its filter and corrector, its raw depth a filter, and
     its cleaned depth and corrected colour the fusion: by node, as the graph names them (an
     endpoint not yet discovered, or left by a process that just ended, has no known node)."""

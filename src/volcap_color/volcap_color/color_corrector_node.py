@@ -6,7 +6,8 @@ Subscribes ``color/image_raw`` (rgb8, bgr8, rgba8 or bgra8; or JPEG ``color/imag
 with ``color_transport:=compressed``), ``color/camera_info`` and the latched
 ``/volcap/calibration``; publishes ``color/image_corrected`` (rgb8, same size, same header) and,
 with each image, its ``color/image_corrected/camera_info`` (so a consumer needs only this
-camera's relative topics). A new
+camera's relative topics). In a live graph only the frame sets admitted on
+``/volcap/admission`` are corrected (``volcap_core.admission``). A new
 calibration is picked up as it is published, without a restart. Until a calibration with a
 colour model for this camera arrives, images are passed through unchanged (``passthrough``,
 default) or dropped; either way ``/volcap/diagnostics`` says so.
@@ -19,15 +20,16 @@ is used.
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass
 
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
 from volcap_core import qos, topics
-from volcap_core.conversions import MessageConversionError, color_message_to_rgb, numpy_to_image, stamp_to_ns
-from volcap_core.ros import Diagnostics, declare_config, run_node, subscribe_color
+from volcap_core.conversions import MessageConversionError, color_message_to_rgb, image_to_cdr, stamp_to_ns
+from volcap_core.ros import AdmissionListener, Diagnostics, color_message_type, declare_config, run_node, subscribe_color
 from volcap_core.settings import color_transport_setting, setting
 
 from .corrector import CameraCorrection
@@ -61,12 +63,16 @@ class ColorCorrector(Node):
             else:
                 self.diagnostics.report('error', message)
         self.info: CameraInfo | None = None
+        self.work_s = 0.0          # process CPU time spent on admitted frames
         self.pub = self.create_publisher(Image, topics.COLOR_CORRECTED, qos.DRIVER)
         self.pub_info = self.create_publisher(CameraInfo, topics.COLOR_CORRECTED_INFO, qos.DRIVER)
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
+        self.admission = AdmissionListener(self, self.diagnostics)
         inputs = qos.EVERY_FRAME if self.cfg.reliable else qos.CAMERA
         self.create_subscription(CameraInfo, topics.COLOR_INFO, self._on_info, inputs)
-        subscribe_color(self, self.cfg.color_transport, self._on_image, inputs)
+        # Serialised: a frame set that is not admitted is dropped before it is deserialised.
+        self.color_type = color_message_type(self.cfg.color_transport)
+        subscribe_color(self, self.cfg.color_transport, self._on_image, inputs, raw=True)
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'color_corrector started for {camera}')
 
@@ -84,8 +90,13 @@ class ColorCorrector(Node):
     def _on_info(self, msg: CameraInfo) -> None:
         self.info = msg
 
-    def _on_image(self, msg: Image | CompressedImage) -> None:
+    def _on_image(self, data: bytes) -> None:
+        started = time.process_time()
         try:
+            msg = self.admission.admitted_message('color', data, self.color_type)
+            if msg is None:
+                return
+            stamp = stamp_to_ns(msg.header.stamp)
             out = self.correction.apply(color_message_to_rgb(msg))
         except (MessageConversionError, ValueError) as e:
             self.correction.skipped += 1
@@ -97,11 +108,13 @@ class ColorCorrector(Node):
             # camera_info first, so a subscriber rarely sees the image before it
             self.info.header = msg.header
             self.pub_info.publish(self.info)
-        self.pub.publish(numpy_to_image(out, 'rgb8', stamp_to_ns(msg.header.stamp), msg.header.frame_id))
+        self.pub.publish(image_to_cdr(out, 'rgb8', stamp, msg.header.frame_id))
+        self.work_s += time.process_time() - started
 
     def _report(self) -> None:
         level, message, values = self.correction.status()
-        self.diagnostics.report(level, message, **values)
+        self.diagnostics.report(level, message, dropped=self.correction.skipped, work_s=round(self.work_s, 3),
+                                **values, **self.admission.counts())
 
 
 def main(args=None):

@@ -6,6 +6,7 @@ messages return views on the message buffer where the layout allows (no copy).
 """
 from __future__ import annotations
 
+import struct
 import sys
 
 import cv2
@@ -41,6 +42,20 @@ def ns_to_stamp(ns: int) -> Time:
 
 def stamp_to_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def cdr_stamp_format(data: bytes) -> str:
+    # 4-byte CDR encapsulation header (byte 1: little-endian flag), then stamp.sec (int32) and
+    # stamp.nanosec (uint32) of the leading std_msgs/Header.
+    if len(data) < 12 or data[0] != 0:
+        raise ValueError('not a CDR-encapsulated message')
+    return '<iI' if data[1] & 1 else '>iI'
+
+
+def cdr_stamp_ns(data: bytes) -> int:
+    """header.stamp of a CDR message whose first field is a std_msgs/Header, without decoding."""
+    sec, nsec = struct.unpack_from(cdr_stamp_format(data), data, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 def make_header(stamp_ns: int, frame_id: str) -> Header:
@@ -316,6 +331,24 @@ class _CdrWriter:
 
     def bytes(self) -> bytes:
         return b''.join(self.parts)
+
+
+def image_to_cdr(arr: np.ndarray, encoding: str, stamp_ns: int = 0, frame_id: str = '') -> bytes:
+    """A serialised sensor_msgs/Image, for ``Publisher.publish(bytes)``: the same checks as
+    ``numpy_to_image``, without rclpy's serialisation of the message (2.3 ms for 1280x720 rgb8,
+    bench/live.py)."""
+    msg = numpy_to_image(arr[:1], encoding)       # validates encoding, dtype and shape cheaply
+    h, w = arr.shape[:2]
+    step = msg.step
+    writer = _CdrWriter()
+    writer.header(stamp_ns, frame_id)
+    writer.scalars('<u4', h, w)
+    writer.string(encoding)
+    writer.scalars('u1', int(sys.byteorder == 'big'))
+    writer.scalars('<u4', step)
+    writer.scalars('<u4', h * step)
+    writer._raw(np.ascontiguousarray(arr).data)
+    return writer.bytes()
 
 
 def mesh_to_marker_cdr(vertices: np.ndarray, colors: np.ndarray, triangles: np.ndarray, stamp_ns: int,

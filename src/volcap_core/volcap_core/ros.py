@@ -1,8 +1,9 @@
 """Small rclpy helpers shared by the nodes: start-up and shutdown, parameters declared from a
 config dataclass (``volcap_core.settings``), diagnostics on ``volcap/diagnostics``, the colour
-subscription of either transport and a ``/tf_static`` listener."""
+subscription of either transport, a ``/tf_static`` listener and the live admission rule."""
 from __future__ import annotations
 
+import struct
 import time
 from typing import Callable
 
@@ -13,11 +14,14 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CompressedImage, Image
+from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
 
 from . import qos, settings, topics, transport
-from .conversions import diagnostic_array, diagnostic_status, tf_message_to_transforms
+from .admission import Admission, AdmissionRule
+from .conversions import cdr_stamp_ns, diagnostic_array, diagnostic_status, tf_message_to_transforms
 from .tf import StaticTransforms
 
 RCLError = _rclpy.RCLError
@@ -120,12 +124,18 @@ class Diagnostics:
             self.pub.publish(diagnostic_array([self._last], time.time_ns()))
 
 
-def subscribe_color(node: Node, transport: str, callback: Callable, profile, camera: str = ''):
+def color_message_type(transport: str):
+    """The message type of a ``color_transport`` setting."""
+    return CompressedImage if transport == 'compressed' else Image
+
+
+def subscribe_color(node: Node, transport: str, callback: Callable, profile, camera: str = '', raw: bool = False):
     """The colour subscription of a ``color_transport`` setting: ``color/image_raw`` (Image) or
-    ``color/image_raw/compressed`` (JPEG CompressedImage), under ``camera`` when given."""
-    kind, topic = (CompressedImage, topics.COLOR_COMPRESSED) if transport == 'compressed' \
-        else (Image, topics.COLOR_IMAGE)
-    return node.create_subscription(kind, topics.camera_topic(camera, topic) if camera else topic, callback, profile)
+    ``color/image_raw/compressed`` (JPEG CompressedImage), under ``camera`` when given; ``raw``
+    hands the callback the serialised message (see ``AdmissionListener.admitted_message``)."""
+    topic = topics.COLOR_COMPRESSED if transport == 'compressed' else topics.COLOR_IMAGE
+    return node.create_subscription(color_message_type(transport), topics.camera_topic(camera, topic) if camera
+                                    else topic, callback, profile, raw=raw)
 
 
 class StaticTransformListener:
@@ -146,3 +156,34 @@ class StaticTransformListener:
             self.diagnostics.report('warn', f'unusable /tf_static transform: {e}')
         if self.on_update is not None:
             self.on_update()
+
+
+class AdmissionListener(Admission):
+    """A stage's ``Admission`` kept up to date from the latched ``/volcap/admission`` (published
+    by ``volcap live``): without one, every frame is admitted. A malformed rule is reported and
+    the rules already in force are kept."""
+
+    def __init__(self, node: Node, diagnostics: Diagnostics):
+        super().__init__()
+        self.node, self.diagnostics = node, diagnostics
+        node.create_subscription(String, '/' + topics.ADMISSION, self._on_rule, qos.LATCHED)
+
+    def _on_rule(self, msg: String) -> None:
+        try:
+            rule = AdmissionRule.from_text(msg.data)
+        except ValueError as e:
+            self.diagnostics.report('warn', f'admission rule ignored: {e}')
+            return
+        if rule.every != self.current.every:
+            self.node.get_logger().info(f'admitting one frame set in {rule.every} from stamp {rule.since_ns}')
+        self.update(rule)
+
+    def admitted_message(self, stream, data: bytes, kind):
+        """The message of a serialised frame when its capture stamp is admitted, else None: frames
+        that are not admitted are never deserialised. ValueError for a message that is not CDR."""
+        try:
+            if not self.admit(stream, cdr_stamp_ns(data)):
+                return None
+            return deserialize_message(data, kind)
+        except (struct.error, RuntimeError) as e:     # RMWError: not a message of this type
+            raise ValueError(f'not a serialised {kind.__name__}: {e}') from None

@@ -22,11 +22,13 @@ CAMERA_POSES = 'volcap/camera_poses'
 FUSED_POINTS = 'volcap/points'
 MESH = 'volcap/mesh'
 DIAGNOSTICS = 'volcap/diagnostics'
+# Which capture frame sets a live graph processes (volcap_core.admission), from volcap live.
+ADMISSION = 'volcap/admission'
 # The drivers' fixed frames (depth-to-colour extrinsic), as tf2's static broadcaster sends them.
 TF_STATIC = 'tf_static'
 
 # Topics whose last message a late subscriber must still get (transient-local).
-LATCHED = (RIG, CALIBRATION, CAMERA_POSES)
+LATCHED = (RIG, CALIBRATION, CAMERA_POSES, ADMISSION)
 
 # Session phases announced on PHASE (std_msgs/String YAML) at the first stamp of each part.
 CLEAN_PLATE, CALIBRATION_PHASE, CAPTURE = 'clean_plate', 'calibration', 'capture'

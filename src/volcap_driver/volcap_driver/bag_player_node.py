@@ -20,10 +20,12 @@ from rclpy.node import Node
 from volcap_core import qos, topics
 from volcap_core.bag_io import BagError, BagReader, message_class
 from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.sync import DEFAULT_PERIOD_NS, PeriodEstimate
 
 from .playback import (
     HEADER_FIRST_TYPES,
     BagPlayerConfig,
+    LateSetFilter,
     Schedule,
     output_topic,
     parse_counts,
@@ -107,9 +109,13 @@ class BagPlayer(Node):
                                f'message bag, {(reader.end_ns - reader.start_ns) / 1e9:.2f} s of bag time')
         rate = self.cfg.rate
         last_report = time.monotonic()
+        period = PeriodEstimate()
+        next_pass_ns = target = time.time_ns()
+        late = LateSetFilter(int(self.cfg.max_lag_ms * 1e6))
         while not self._stop.is_set():
-            schedule = Schedule(start, time.time_ns(), rate, self.fast)
+            schedule = Schedule(start, max(time.time_ns(), next_pass_ns), rate, self.fast)
             for msg in self._read_ahead(reader, list(pubs), start):
+                period.add(msg.topic, msg.stamp_ns)
                 new_rate = self.cfg.rate
                 if new_rate != rate:
                     rate, schedule = new_rate, schedule.rebase(msg.stamp_ns, time.time_ns(), new_rate)
@@ -117,6 +123,9 @@ class BagPlayer(Node):
                 delay = (target - time.time_ns()) / 1e9
                 if delay > 0 and self._stop.wait(delay):
                     return
+                half_period = int((period.period_ns or DEFAULT_PERIOD_NS) / rate) // 2
+                if msg.msgtype in HEADER_FIRST_TYPES and not late.send(target, time.time_ns(), half_period):
+                    continue
                 data = msg.data
                 if self.restamp and msg.msgtype in HEADER_FIRST_TYPES:
                     data = restamp_cdr(data, target)
@@ -125,10 +134,15 @@ class BagPlayer(Node):
                 if time.monotonic() - last_report > 1.0:
                     last_report = time.monotonic()
                     self.diagnostics.report('ok', 'playing', published=self.published,
-                                            lag_ms=f'{(time.time_ns() - target) / 1e6:.1f}',
+                                            late_sets_dropped=late.dropped_sets, lag_ms=f'{(time.time_ns() - target) / 1e6:.1f}',
                                             bag_time=f'{(msg.stamp_ns - reader.start_ns) / 1e9:.3f}')
             if not self.loop:
                 break
+            # The next pass one frame period after this one's last set, as a camera would send it
+            # (sooner, and its first set would share stamps with this pass's last).
+            next_pass_ns = target + int((period.period_ns or DEFAULT_PERIOD_NS) / rate)
+            if self.cfg.loop_offset >= 0:
+                start = reader.start_ns + int(self.cfg.loop_offset * 1e9)
         if self._stop.is_set() or not self.context.ok():
             return
         deadline = time.monotonic() + DRAIN_TIMEOUT_S      # one budget for all topics, not one each

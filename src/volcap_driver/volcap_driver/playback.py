@@ -4,6 +4,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+from volcap_core.conversions import cdr_stamp_format
 from volcap_core.settings import setting
 
 HEADER_FIRST_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'sensor_msgs/msg/PointCloud2',
@@ -51,6 +52,8 @@ class BagPlayerConfig:
     as_fast_as_possible: bool = setting(False, 'publish without waiting between messages', read_only=True)
     loop: bool = setting(False, 'start again from the beginning when the bag ends', read_only=True)
     start_offset: float = setting(0.0, 'seconds into the bag to start from', 0.0, 1e7, read_only=True)
+    loop_offset: float = setting(-1.0, 'with loop, seconds into the bag each later pass starts from, e.g. the '
+                                 'capture after a clean plate (-1: start_offset)', -1.0, 1e7, read_only=True)
     topics: tuple[str, ...] = setting(('',), 'bag topics to play (empty: all)', read_only=True)
     remap: tuple[str, ...] = setting(('',), 'FROM:=TO topic remappings, e.g. cam0/color/image_raw:=/k4a/rgb/image_raw',
                                      read_only=True)
@@ -60,6 +63,9 @@ class BagPlayerConfig:
                                               read_only=True)
     restamp: bool = setting(False, 'rewrite header stamps to the wall-clock time each message is scheduled at',
                             read_only=True)
+    max_lag_ms: float = setting(0.0, 'drop a whole frame set whose time came more than this long ago, as a camera '
+                                'that cannot send drops frames rather than sending them late (0: never drop)',
+                                0.0, 60_000.0, read_only=True)
     exit_when_done: bool = setting(True, 'shut the node down when playback ends (exit code 1 if the bag was '
                                          'unreadable)', read_only=True)
     wait_for_subscribers: float = setting(0.0, 'wait up to this many seconds for every played topic to have a '
@@ -88,22 +94,29 @@ class Schedule:
         return Schedule(stamp_ns, wall_now_ns, rate, self.as_fast_as_possible)
 
 
-def _stamp_format(data: bytes) -> str:
-    # 4-byte CDR encapsulation header (byte 1: little-endian flag), then stamp.sec (int32) and
-    # stamp.nanosec (uint32) of the leading std_msgs/Header.
-    if len(data) < 12 or data[0] != 0:
-        raise ValueError('not a CDR-encapsulated message')
-    return '<iI' if data[1] & 1 else '>iI'
-
-
-def cdr_stamp_ns(data: bytes) -> int:
-    """header.stamp of a CDR message whose first field is a std_msgs/Header, without decoding."""
-    sec, nsec = struct.unpack_from(_stamp_format(data), data, 4)
-    return sec * 1_000_000_000 + nsec
-
-
 def restamp_cdr(data: bytes, stamp_ns: int) -> bytes:
     """Replace header.stamp in a CDR message whose first field is a std_msgs/Header, patching
     the bytes instead of decoding the (multi-MB) message; one copy."""
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    return b''.join((data[:4], struct.pack(_stamp_format(data), sec, nsec), memoryview(data)[12:]))
+    return b''.join((data[:4], struct.pack(cdr_stamp_format(data), sec, nsec), memoryview(data)[12:]))
+
+
+class LateSetFilter:
+    """Which messages a player that must stay real time sends: a frame set (the messages whose
+    scheduled times lie within half a frame period of the set's first) is dropped whole when its
+    first message is already ``max_lag_ns`` late, never split."""
+
+    def __init__(self, max_lag_ns: int):
+        self.max_lag_ns = max_lag_ns
+        self.dropped_sets = 0
+        self._set_start: int | None = None
+        self._dropping = False
+
+    def send(self, target_ns: int, now_ns: int, half_period_ns: int) -> bool:
+        if self.max_lag_ns <= 0:
+            return True
+        if self._set_start is None or abs(target_ns - self._set_start) > half_period_ns:
+            self._set_start = target_ns
+            self._dropping = now_ns - target_ns > self.max_lag_ns
+            self.dropped_sets += self._dropping
+        return not self._dropping

@@ -9,7 +9,9 @@ the colour), ``depth/camera_info``, and the session phase on ``/volcap/phase``. 
 its depth-to-colour extrinsic from the ``rig_file`` parameter, ``/volcap/rig`` or the driver's
 ``/tf_static`` (looked up between the two camera_info frame ids). Publishes
 ``depth/image_clean`` (16UC1 mm, colour geometry at the output size) with its camera_info and
-``points`` (xyz + rgb, colour optical frame). The clean plate is learnt during the
+``points`` (xyz + rgb, colour optical frame; built only while someone subscribes). In a live
+graph only the frame sets admitted on ``/volcap/admission`` are cleaned (the same ones in every
+camera's stages, ``volcap_core.admission``). The clean plate is learnt during the
 ``clean_plate`` phase, or on the ``~/capture_clean_plate`` service. Every threshold is a
 parameter and can be changed while running.
 """
@@ -21,7 +23,7 @@ from pathlib import Path
 
 import yaml
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -33,12 +35,20 @@ from volcap_core.conversions import (
     camera_model_to_info,
     color_message_to_rgb,
     depth_to_metres,
-    numpy_to_image,
+    image_to_cdr,
     points_to_pointcloud2,
     stamp_to_ns,
 )
 from volcap_core.rig import Rig
-from volcap_core.ros import Diagnostics, StaticTransformListener, declare_config, run_node, subscribe_color
+from volcap_core.ros import (
+    AdmissionListener,
+    Diagnostics,
+    StaticTransformListener,
+    color_message_type,
+    declare_config,
+    run_node,
+    subscribe_color,
+)
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
 
 from .mask import BackgroundModel
@@ -46,7 +56,7 @@ from .pipeline import DepthFilterConfig
 from .session import CleanPlateSession, DepthFilterNodeConfig, FramePair, Outcome
 
 
-def decode(pair: tuple[Image | CompressedImage, Image]):
+def decode(pair: tuple[Image, Image]):
     return color_message_to_rgb(pair[0]), depth_to_metres(pair[1])
 
 
@@ -65,7 +75,7 @@ class DepthFilter(Node):
             self.get_logger().info(f'loaded a {background.frames}-frame clean plate from {path}')
         self.session = CleanPlateSession(self.camera, cfg, decode,
                                          (self.node_cfg.output_width, self.node_cfg.output_height),
-                                         self.node_cfg.max_held_frames, background)
+                                         self.node_cfg.max_held_frames, background, self.node_cfg.output_scale)
         self.sync = FrameSetSynchronizer([self.camera], ('color', 'depth'),
                                          tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
@@ -74,6 +84,7 @@ class DepthFilter(Node):
         self.processed = self.skipped = 0
         self.empty_streak = 0      # consecutive cleaned frames with no depth left
         self.last_ms = 0.0
+        self.work_s = 0.0          # process CPU time spent on admitted frames
 
         # Created before the image subscriptions: the executor serves ready subscriptions in
         # creation order, so a phase change or camera_info sent with a frame is seen before it.
@@ -82,11 +93,16 @@ class DepthFilter(Node):
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
         self.tf = StaticTransformListener(self, self.diagnostics, self._look_up_extrinsic)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
+        self.admission = AdmissionListener(self, self.diagnostics)
         inputs = qos.EVERY_FRAME if self.node_cfg.reliable else qos.CAMERA
         self.create_subscription(CameraInfo, topics.COLOR_INFO, lambda m: self._on_info(m, 'color'), inputs)
         self.create_subscription(CameraInfo, topics.DEPTH_INFO, lambda m: self._on_info(m, 'depth'), inputs)
-        subscribe_color(self, self.node_cfg.color_transport, lambda m: self._on_image(m, 'color'), inputs)
-        self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth'), inputs)
+        # Serialised: a frame set that is not admitted is dropped before it is deserialised.
+        color_type = color_message_type(self.node_cfg.color_transport)
+        subscribe_color(self, self.node_cfg.color_transport, lambda m: self._on_image(m, 'color', color_type), inputs,
+                        raw=True)
+        self.create_subscription(Image, topics.DEPTH_IMAGE, lambda m: self._on_image(m, 'depth', Image), inputs,
+                                 raw=True)
         self.pub_depth = self.create_publisher(Image, topics.DEPTH_CLEAN, qos.DRIVER)
         self.pub_info = self.create_publisher(CameraInfo, topics.DEPTH_CLEAN_INFO, qos.DRIVER)
         self.pub_points = self.create_publisher(PointCloud2, topics.POINTS, qos.DRIVER)
@@ -152,9 +168,17 @@ class DepthFilter(Node):
             self._look_up_extrinsic()
         self._handle(self.session.set_model(stream, model))
 
-    def _on_image(self, msg: Image | CompressedImage, stream: str) -> None:
-        for fs in self.sync.add(self.camera, stamp_to_ns(msg.header.stamp), msg, stream=stream,
-                                now_ns=time.monotonic_ns()):
+    def _on_image(self, data: bytes, stream: str, kind) -> None:
+        started = time.process_time()
+        try:
+            msg = self.admission.admitted_message(stream, data, kind)
+        except ValueError as e:
+            self.diagnostics.report('error', f'{self.camera}: unreadable {stream} message: {e}')
+            return
+        if msg is None:
+            return
+        stamp = stamp_to_ns(msg.header.stamp)
+        for fs in self.sync.add(self.camera, stamp, msg, stream=stream, now_ns=time.monotonic_ns()):
             if not fs.complete:
                 self.skipped += 1
                 self.diagnostics.report('warn', f'{self.camera}: no matching {fs.missing[0][1]} image for stamp '
@@ -166,6 +190,7 @@ class DepthFilter(Node):
             pair = FramePair(stamp_to_ns(color.header.stamp), color.header.frame_id,
                              depth.header.frame_id == color.header.frame_id, (color, depth))
             self._handle(self.session.add(pair))
+        self.work_s += time.process_time() - started
 
     # outcomes -----------------------------------------------------------------------------
     def _handle(self, outcomes: list[Outcome]) -> None:
@@ -185,8 +210,8 @@ class DepthFilter(Node):
         stamp, frame = o.pair.stamp_ns, o.pair.frame_id
         # camera_info first, so a subscriber rarely sees the image before it
         self.pub_info.publish(camera_model_to_info(o.cleaner.output_model, stamp, frame))
-        self.pub_depth.publish(numpy_to_image(depth_to_millimetres(o.result.depth), '16UC1', stamp, frame))
-        if self.node_cfg.publish_points:
+        self.pub_depth.publish(image_to_cdr(depth_to_millimetres(o.result.depth), '16UC1', stamp, frame))
+        if self.node_cfg.publish_points and self.pub_points.get_subscription_count():
             xyz, rgb = o.cleaner.points(o.result)
             self.pub_points.publish(points_to_pointcloud2(xyz, rgb, stamp, frame))
         if self.figures_requested:
@@ -221,8 +246,9 @@ class DepthFilter(Node):
         if self.skipped and self.processed == 0:
             return   # the last warning or error stays the published status
         session = self.session
-        values = dict(processed=self.processed, skipped=self.skipped, last_ms=round(self.last_ms, 1),
-                      clean_plate_frames=session.background.frames)
+        values = dict(processed=self.processed, skipped=self.skipped, dropped=self.skipped,
+                      last_ms=round(self.last_ms, 1), work_s=round(self.work_s, 3), clean_plate_frames=session.background.frames,
+                      **self.admission.counts())
         if self.empty_streak:
             self.diagnostics.report('warn', f'{self.camera}: the last {self.empty_streak} cleaned frames have no depth '
                                             'left (empty stage, or the range gate / clean plate removes everything)',

@@ -39,6 +39,8 @@ class DepthFilterNodeConfig:
     color_transport: str = color_transport_setting()
     output_width: int = setting(0, 'cleaned depth width (0 = the colour width)', 0, 8192, read_only=True)
     output_height: int = setting(0, 'cleaned depth height (0 = the colour height)', 0, 8192, read_only=True)
+    output_scale: float = setting(1.0, 'cleaned depth size as a fraction of the colour size, where output_width / '
+                                  'output_height are 0 (volcap live: 0.5)', 0.05, 4.0, read_only=True)
     clean_plate_frames: int = setting(10, 'frames gathered by ~/capture_clean_plate', 1, 1000)
     background_file: str = setting('', 'clean plate to load at start and save after learning (npz)',
                                    read_only=True)
@@ -78,11 +80,13 @@ class Outcome:
 class CleanPlateSession:
     def __init__(self, camera: str, cfg: DepthFilterConfig, decode: Callable[[Any], tuple[np.ndarray, np.ndarray]],
                  output_size: tuple[int, int] = (0, 0), max_held: int = 4,
-                 background: BackgroundModel | None = None):
+                 background: BackgroundModel | None = None, output_scale: float = 1.0):
+        """``output_size`` (0: the colour size times ``output_scale``) is the cleaned depth's."""
         self.camera = camera
         self.cfg = cfg
         self.decode = decode
         self.output_size = output_size
+        self.output_scale = output_scale
         self.max_held = max_held
         self.background = background or BackgroundModel()
         self.rig: Rig | None = None
@@ -194,7 +198,8 @@ class CleanPlateSession:
             T = np.eye(4) if pair.registered else self.rig.camera(self.camera).T_color_depth \
                 if self.rig is not None else self.extrinsic
             w, h = self.output_size
-            size = (w or color_model.width, h or color_model.height)
+            size = (w or max(1, round(color_model.width * self.output_scale)),
+                    h or max(1, round(color_model.height * self.output_scale)))
             c = DepthCleaner(DepthRegistration(depth_model, color_model, T, size, registered=pair.registered),
                              self.cfg)
             c.background = self.background

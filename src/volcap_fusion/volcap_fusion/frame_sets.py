@@ -23,7 +23,7 @@ class FusionNodeConfig:
     frame_timeout_ms: float = setting(300.0, 'after this, fuse the cameras that arrived', 1.0, 10_000.0,
                                       read_only=True)
     min_cameras: int = setting(1, 'fewer usable cameras than this: the frame set is skipped', 1, 64)
-    queue_size: int = setting(2, 'frame sets waiting for fusion (the oldest is dropped)', 1, 100, read_only=True)
+    queue_size: int = setting(1, 'frame sets waiting for fusion (the oldest is dropped)', 1, 100, read_only=True)
     phases: tuple[str, ...] = setting((topics.CAPTURE,), 'session phases to fuse while one is announced on '
                                       '/volcap/phase')
     reliable: bool = setting(False, 'subscribe reliably (offline replay: lose no frame)', read_only=True)

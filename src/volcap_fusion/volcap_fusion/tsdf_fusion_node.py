@@ -10,10 +10,14 @@ corrector). A frame set is the cameras' images with the same stamp (within
 ``sync_tolerance_ms``); one still incomplete after ``frame_timeout_ms`` is fused from the
 cameras that arrived, and the missing ones are reported on ``volcap/diagnostics``.
 
-Fusion runs on a worker thread fed by a bounded drop-oldest queue, so a slow volume never
-stalls the subscriptions: when fusion falls behind, the oldest waiting frame sets are dropped
-(and counted). Publishes ``/volcap/points`` (PointCloud2, world frame) and ``/volcap/mesh``
-(Marker TRIANGLE_LIST with vertex colours; decimated above ``marker_max_triangles``), and with
+Fusion runs on a worker thread fed by a bounded drop-oldest queue (one set waits by default),
+so a slow volume never stalls the subscriptions and no backlog builds: when fusion falls
+behind, the oldest waiting frame sets are dropped (and counted). In a live graph only the frame
+sets admitted on ``/volcap/admission`` are gathered (``volcap_core.admission``). Publishes
+``/volcap/points`` (PointCloud2, world frame) and ``/volcap/mesh`` (Marker TRIANGLE_LIST with
+vertex colours; decimated above ``marker_max_triangles``), each only while someone subscribes;
+diagnostics carry the latency from capture stamp to publication (p50/p95 over the last 10 s,
+when the stamps are the rig's clock). With
 ``output_dir`` writes the volumetric sequence (PLY + GLB per time step, ``sequence.jsonl``).
 While a session phase is announced on ``/volcap/phase``, only the ``phases`` listed are fused.
 """
@@ -21,7 +25,9 @@ from __future__ import annotations
 
 import sys
 import time
+from collections import deque
 
+import numpy as np
 import yaml
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -40,13 +46,16 @@ from volcap_core.conversions import (
     points_to_pointcloud2,
     stamp_to_ns,
 )
-from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
 from .frame_sets import FusionNodeConfig, frame_set_views, fused_cameras, fused_phase
 from .sequence import SequenceWriter
 from .tsdf import CameraView, FusionConfig, TsdfFusion, pick_device
+
+# Latency percentiles cover the frame sets published in the last this many seconds.
+LATENCY_WINDOW_S = 10.0
 
 
 class TsdfFusionNode(Node):
@@ -68,13 +77,16 @@ class TsdfFusionNode(Node):
         self.infos: dict[tuple[str, str], CameraInfo] = {}
         self.camera_subscriptions = []
         self.phase = None
-        self.stats = {'fused': 0, 'incomplete': 0, 'skipped': 0, 'empty': 0}
+        self.stats = {'fused': 0, 'fused_complete': 0, 'incomplete': 0, 'skipped': 0, 'empty': 0}
+        self.latency_ms: deque[tuple[float, float]] = deque(maxlen=256)    # (monotonic s, ms)
+        self.work_s = 0.0      # process CPU time while fusing (includes the receiving meanwhile)
         self.last = {}
         self.worker = DropOldestWorker(self._fuse, self.node_cfg.queue_size, 'tsdf_fusion_worker',
                                        on_error=self._on_fusion_error)
 
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
+        self.admission = AdmissionListener(self, self.diagnostics)
         self.pub_points = self.create_publisher(PointCloud2, '/' + topics.FUSED_POINTS, qos.DRIVER)
         self.pub_mesh = self.create_publisher(Marker, '/' + topics.MESH, qos.DRIVER)
         self.create_timer(0.05, self._poll)
@@ -127,10 +139,10 @@ class TsdfFusionNode(Node):
         self.phase = topics.parse_phase(msg.data)
 
     def _on_image(self, camera: str, stream: str, msg: Image) -> None:
-        if self.sync is None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        if self.sync is None or not self.admission.admit((camera, stream), stamp):
             return
-        self._emit(self.sync.add(camera, stamp_to_ns(msg.header.stamp), msg, stream=stream,
-                                 now_ns=time.monotonic_ns()))
+        self._emit(self.sync.add(camera, stamp, msg, stream=stream, now_ns=time.monotonic_ns()))
 
     def _poll(self) -> None:
         if self.sync is not None:
@@ -147,7 +159,13 @@ class TsdfFusionNode(Node):
     # fusion (worker thread) ---------------------------------------------------------------
     def _fuse(self, item) -> None:
         fs, calibration, cameras = item
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.process_time()
+        try:
+            self._fuse_set(fs, calibration, cameras, t0)
+        finally:
+            self.work_s += time.process_time() - cpu0
+
+    def _fuse_set(self, fs: FrameSet, calibration: Calibration, cameras: list[str], t0: float) -> None:
         pairs = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras}
         parts = {c: p for c, p in pairs.items() if None not in p}
         plan = frame_set_views(fs.stamp_ns, cameras, parts, lambda c, p: self._view(c, *p, calibration),
@@ -167,13 +185,19 @@ class TsdfFusionNode(Node):
             self.last = {'cameras': len(plan.views), 'vertices': 0}
             return
         frame = calibration.world_frame
-        self.pub_points.publish(points_to_pointcloud2(model.vertices, model.colors, fs.stamp_ns, frame))
-        marker = model.decimated(self.node_cfg.marker_max_triangles, 2 * self.fusion.cfg.voxel_size)
-        self.pub_mesh.publish(mesh_to_marker_cdr(marker.vertices, marker.colors, marker.triangles, fs.stamp_ns,
-                                                 frame))
+        if self.pub_points.get_subscription_count():
+            self.pub_points.publish(points_to_pointcloud2(model.vertices, model.colors, fs.stamp_ns, frame))
+        if self.pub_mesh.get_subscription_count():
+            marker = model.decimated(self.node_cfg.marker_max_triangles, 2 * self.fusion.cfg.voxel_size)
+            self.pub_mesh.publish(mesh_to_marker_cdr(marker.vertices, marker.colors, marker.triangles, fs.stamp_ns,
+                                                     frame))
+        latency_ms = (time.time_ns() - fs.stamp_ns) / 1e6
+        if 0 <= latency_ms < 60_000:      # stamps on the rig's clock (live), not a replayed bag's
+            self.latency_ms.append((time.monotonic(), latency_ms))
         if self.writer is not None:
             self.writer.write(model, fs.stamp_ns, plan.missing)
         self.stats['fused'] += 1
+        self.stats['fused_complete'] += not plan.missing
         self.last = {'fusion_ms': round(sum(model.timings_ms.values()), 1),
                      'total_ms': round((time.perf_counter() - t0) * 1000, 1), 'cameras': len(plan.views),
                      'vertices': len(model.vertices), 'triangles': len(model.triangles)}
@@ -199,8 +223,15 @@ class TsdfFusionNode(Node):
         w = self.worker
         level, message = ('warn', 'empty stage: the last frame set had no depth inside the capture box') \
             if self.last.get('vertices') == 0 else ('ok', f'{self.stats["fused"]} frame sets fused')
-        self.diagnostics.report(level, message, waiting=w.pending, dropped=w.dropped, errors=w.errors, **self.stats,
-                                **self.last)
+        latency = {}
+        recent = [ms for t, ms in self.latency_ms if t > time.monotonic() - LATENCY_WINDOW_S]
+        if recent:
+            p50, p95 = np.percentile(recent, [50, 95])
+            latency = {'latency_ms_p50': round(float(p50), 1), 'latency_ms_p95': round(float(p95), 1)}
+        self.diagnostics.report(level, message, waiting=w.pending, dropped=w.dropped + self.stats['skipped'],
+                                queue_dropped=w.dropped, errors=w.errors,
+                                work_s=round(self.work_s, 3), **self.stats, **self.last, **latency,
+                                **self.admission.counts())
 
     def destroy_node(self):
         self.worker.stop()

@@ -1,0 +1,179 @@
+"""Live benchmark: the graph as `volcap live` runs it, fed 8 cameras at 30 fps by a bag looped at
+real time with fresh stamps, a renderer stand-in receiving every mesh.
+
+    .venv/bin/python bench/live.py BAG CALIBRATION [--seconds 60] [--voxels 0.01,0.006] [--composed]
+
+Per voxel size (and with ``--composed``, also every node in one process), after a warm-up:
+- delivered meshes/s at the renderer, latency p50/p95 from capture stamp to the mesh's arrival,
+  the share of meshes fused from all cameras, the admission the controller settled on, drops
+  per stage per second (the stages' own, and admitted frames that never reached them);
+- the **compute bound**: each stage's own CPU time per delivered mesh (process CPU while it
+  handles admitted frames, summed over cameras, as the stages report it in the same run) and the
+  meshes/s the machine's cores would sustain doing only that work; delivered / bound;
+- where the rest of the machine went: each process's CPU seconds per second (psutil), the
+  frame source (bag_player, standing in for the drivers) and the receiving of frames that are
+  not admitted included;
+- with ``--soak``: latency and the graph's resident memory over the run (growth per minute).
+Writes bench_out/live.json and live.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def memory_sampler(stop: threading.Event, samples: list, period_s: float = 5.0) -> None:
+    """Resident memory of this process and every volcap process it started, every ``period_s``."""
+    me = psutil.Process()
+    t0 = time.monotonic()
+    while not stop.wait(period_s):
+        rss = me.memory_info().rss
+        for child in me.children(recursive=True):
+            try:
+                rss += child.memory_info().rss
+            except psutil.Error:
+                pass
+        samples.append((time.monotonic() - t0, rss / 1e6))
+
+
+def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: float, composed: bool) -> dict:
+    from volcap_bringup.live import LiveConfig, latency_ms, run_live, summary_figures
+    from volcap_bringup.live_controller import LiveController
+    cfg = LiveConfig(calibration, bag=bag, voxel_size=voxel, seconds=seconds, warmup_s=warmup, composed=composed,
+                     probe=True)
+    stop, memory = threading.Event(), []
+    sampler = threading.Thread(target=memory_sampler, args=(stop, memory), daemon=True)
+    sampler.start()
+    last = [0.0]
+
+    def show(s):
+        if time.monotonic() - last[0] >= 10:
+            last[0] = time.monotonic()
+            print(f'  t={s["t_s"]:5.0f} s  {LiveController.line(s)}', flush=True)
+    try:
+        result = run_live(cfg, on_summary=show)
+    finally:
+        stop.set()
+    figures = summary_figures(result['summaries'], warmup)
+    window = result.get('window_s') or 0.0
+    meshes = [m for m in result['meshes']]
+    start_ns = meshes[0][0] if meshes else 0
+    in_window = [m for m in meshes if (m[0] - start_ns) / 1e9 >= 0] if meshes else []
+    lat = latency_ms(in_window[-max(1, result['meshes_in_window'] or 1):]) if in_window else np.array([])
+    after = [s for s in result['summaries'] if s['t_s'] >= warmup]
+    work = [s['work_ms_per_set'] for s in after if s.get('work_ms_per_set')]
+    work_ms = {k: float(np.median([w[k] for w in work])) for k in work[0]} if work else {}
+    cores = psutil.cpu_count()
+    bound = cores * 1000 / sum(work_ms.values()) if work_ms else None
+    delivered = (result['meshes_in_window'] / window) if window else None
+    cpu = {n: v / window for n, v in result.get('cpu_s', {}).items()} if window else {}
+    grouped = {}
+    for name, v in cpu.items():
+        key = name.split('/')[0]
+        grouped[key] = grouped.get(key, 0.0) + v
+    return {
+        'voxel_size': voxel, 'mode': result['mode'], 'seconds_measured': window, 'cameras': len(result['cameras']),
+        'delivered_meshes_per_s': delivered,
+        'latency_ms_p50': float(np.percentile(lat, 50)) if lat.size else None,
+        'latency_ms_p95': float(np.percentile(lat, 95)) if lat.size else None,
+        'complete_share': figures['complete_share'], 'input_sets_per_s': figures['input_fps'],
+        'admit_every_median': figures.get('admit_every_median'), 'drops_per_s': figures.get('drops_per_s'),
+        'work_ms_per_set': work_ms, 'cores': cores, 'compute_bound_meshes_per_s': bound,
+        'delivered_over_bound': delivered / bound if bound and delivered is not None else None,
+        'cpu_cores_used_by_process_group': grouped,
+        'memory_mb': memory, 'latency_series': [((a - start_ns) / 1e9, (a - s) / 1e6) for a, s, _ in meshes],
+        'mesh_mb_median': float(np.median([b for *_, b in meshes]) / 1e6) if meshes else None,
+        'node_exit_codes': result['node_exit_codes'],
+    }
+
+
+def growth_per_minute(series: list[tuple[float, float]]) -> float | None:
+    """Slope of a least-squares line through (seconds, value), per minute, over the last 80 %."""
+    if len(series) < 4:
+        return None
+    t, v = np.array(series).T
+    keep = t >= t[0] + 0.2 * (t[-1] - t[0])
+    return float(np.polyfit(t[keep], v[keep], 1)[0] * 60)
+
+
+def figure(runs: list[dict], path: Path) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    for r in runs:
+        label = f'{r["voxel_size"] * 1000:.0f} mm {r["mode"]}'
+        if r['latency_series']:
+            t, lat = np.array(r['latency_series']).T
+            axes[0].plot(t, lat, '.', ms=3, label=label)
+        if r['memory_mb']:
+            t, mb = np.array(r['memory_mb']).T
+            axes[1].plot(t, mb, label=label)
+    axes[0].set(xlabel='s', ylabel='capture to mesh at the renderer, ms', title='latency per mesh')
+    axes[1].set(xlabel='s', ylabel='MB resident (all processes)', title='memory')
+    names = [f'{r["voxel_size"] * 1000:.0f} mm\n{r["mode"]}' for r in runs]
+    x = np.arange(len(runs))
+    axes[2].bar(x - 0.2, [r['delivered_meshes_per_s'] or 0 for r in runs], 0.4, label='delivered')
+    axes[2].bar(x + 0.2, [r['compute_bound_meshes_per_s'] or 0 for r in runs], 0.4, label='compute bound')
+    axes[2].set_xticks(x, names)
+    axes[2].set(ylabel='meshes/s', title='delivered vs compute bound')
+    for ax in axes:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('bag')
+    ap.add_argument('calibration')
+    ap.add_argument('--seconds', type=float, default=60.0)
+    ap.add_argument('--warmup', type=float, default=15.0)
+    ap.add_argument('--voxels', default='0.01,0.006')
+    ap.add_argument('--composed', action='store_true', help='also run every node in one process (10 mm)')
+    ap.add_argument('--out', default=str(REPO / 'bench_out'))
+    args = ap.parse_args()
+    runs = []
+    plan = [(float(v), False) for v in args.voxels.split(',')]
+    if args.composed:
+        plan.append((float(args.voxels.split(',')[0]), True))
+    for voxel, composed in plan:
+        print(f'{voxel * 1000:.0f} mm voxels, {"composed" if composed else "processes"}: '
+              f'{args.seconds:.0f} s after the graph is up', flush=True)
+        r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed)
+        r['memory_mb_per_minute'] = growth_per_minute(r['memory_mb'])
+        r['latency_ms_per_minute'] = growth_per_minute(r['latency_series'])
+        runs.append(r)
+
+        def f(v, fmt='.2f'):
+            return '-' if v is None else format(v, fmt)
+        print(f'  delivered {f(r["delivered_meshes_per_s"])} meshes/s from {f(r["input_sets_per_s"], ".1f")} sets/s '
+              f'in (admit 1/{f(r["admit_every_median"], ".0f")}); latency p50 {f(r["latency_ms_p50"], ".0f")} ms, '
+              f'p95 {f(r["latency_ms_p95"], ".0f")} ms; {100 * (r["complete_share"] or 0):.0f} % from all cameras')
+        print(f'  own work per mesh (ms CPU): {r["work_ms_per_set"]}; compute bound '
+              f'{f(r["compute_bound_meshes_per_s"])} meshes/s on {r["cores"]} cores; delivered/bound '
+              f'{f(r["delivered_over_bound"])}')
+        print(f'  cores used by process group: { {k: round(v, 2) for k, v in r["cpu_cores_used_by_process_group"].items()} }')
+        print(f'  drops/s: {r["drops_per_s"]}')
+        print(f'  growth per minute: memory {f(r["memory_mb_per_minute"], ".1f")} MB, latency '
+              f'{f(r["latency_ms_per_minute"], ".1f")} ms', flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / 'live.json').write_text(json.dumps(runs, indent=1))
+    figure(runs, out / 'live.png')
+    print(f'wrote {out / "live.json"} and {out / "live.png"}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,252 @@
+"""`volcap live`: the graph on live topics, kept real time by admission control.
+
+Every node runs with its live defaults (keep-last queues, one frame set waiting for fusion) and
+``live_controller`` publishes the admission rule on ``/volcap/admission`` from the measured load,
+so the graph drops whole frame sets early (the same ones in every stage) instead of queueing
+them. The frame source is the cameras' drivers (``driver``) or, standing in for them, a bag
+looped at real time with fresh stamps: one pass from the start (the filters learn the clean
+plate), then the capture part over and over. This process publishes the calibration (latched,
+as calibration_service does), hosts the controller and prints its figures once a second; with
+``probe`` it also hosts a renderer stand-in that receives every mesh and times it.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import psutil
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import String
+from visualization_msgs.msg import Marker
+
+from volcap_core import qos, topics, transport
+from volcap_core.bag_io import BagReader
+from volcap_core.calibration import Calibration
+from volcap_core.conversions import cdr_stamp_ns
+from volcap_core.frames import camera_topics, read_rig
+
+from .graph import LIVE_DEPTH_SCALE, LIVE_FRAME_TIMEOUT_MS, LIVE_VOXEL, NodeSpec, camera_remaps, live_controller, rig_graph, stream_remaps
+from .processes import compose, start_node, stop
+from .run_graph import expected_subscribers, wait_until_subscribed
+
+
+class MeshProbe(Node):
+    """A renderer stand-in: receives every mesh and keeps its arrival time and capture stamp."""
+
+    def __init__(self, **node_options):
+        super().__init__('volcap_mesh_probe', **node_options)
+        self.meshes: list[tuple[float, int, int]] = []      # (arrival wall ns, capture stamp ns, bytes)
+        self.create_subscription(Marker, '/' + topics.MESH, self._on_mesh, qos.CAMERA, raw=True)
+
+    def _on_mesh(self, data: bytes) -> None:
+        self.meshes.append((time.time_ns(), cdr_stamp_ns(data), len(data)))
+
+
+@dataclass
+class LiveConfig:
+    calibration: str | Path
+    bag: str | Path | None = None        # looped at real time with fresh stamps (else: drivers run elsewhere)
+    driver: str = 'volcap'               # whose topics the cameras publish (no bag)
+    registered: bool = False
+    color_format: str = 'raw'            # raw | jpeg (no bag)
+    cameras: list[str] | None = None     # default: the calibration's
+    voxel_size: float = LIVE_VOXEL
+    depth_scale: float = LIVE_DEPTH_SCALE     # cleaned depth size as a fraction of the colour size
+    every: int = 0                       # 0: admission chosen from the load; N: one set in N
+    latency_budget_ms: float = 1000.0
+    composed: bool = False
+    output_dir: str = ''
+    rig_file: str = ''
+    seconds: float | None = None         # None: until Ctrl-C
+    warmup_s: float = 10.0               # figures and CPU times from after this
+    probe: bool = False
+    fusion: dict = field(default_factory=dict)     # extra tsdf_fusion parameters
+
+
+def _capture_offset_s(reader: BagReader) -> float:
+    """Seconds into the bag where the capture phase starts (0 when no phase is announced)."""
+    for m in reader.messages([topics.PHASE]):
+        if topics.parse_phase(m.decode().data) == topics.CAPTURE:
+            return max(0.0, (m.stamp_ns - reader.start_ns) / 1e9)
+    return 0.0
+
+
+def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec], list[str], dict]:
+    """(node specs in start order with the controller last, cameras, per-camera topic layout)."""
+    cameras = list(cfg.cameras or calibration.cameras)
+    absent = [c for c in cameras if c not in calibration.cameras]
+    if absent:
+        raise ValueError(f'cameras {absent} are not in the calibration {cfg.calibration}')
+    filters = {c: {} for c in cameras}
+    corrector: dict = {}
+    fusion = {'voxel_size': cfg.voxel_size, 'output_dir': cfg.output_dir,
+              'frame_timeout_ms': LIVE_FRAME_TIMEOUT_MS * cfg.latency_budget_ms / 1000.0, **cfg.fusion}
+    source = None
+    if cfg.bag is not None:
+        with BagReader(cfg.bag) as reader:
+            rig = read_rig(reader)
+            layout = camera_topics(reader, rig.names)
+            loop_offset = _capture_offset_s(reader)
+        missing = [c for c in cameras if c not in layout]
+        if missing:
+            raise ValueError(f'cameras {missing} are not in {cfg.bag}')
+        maps = {c: stream_remaps(c, layout[c]) for c in cameras}
+        for c in cameras:
+            filters[c].update(maps[c][1])
+        corrector.update(maps[cameras[0]][1])
+        remaps = {c: maps[c][0] for c in cameras}
+        played = [t for c in cameras for t in layout[c].values()] + [topics.RIG, topics.PHASE, topics.TF_STATIC]
+        expected = expected_subscribers(cameras, layout, played, controller=True)
+        source = ('volcap_driver', 'bag_player', {
+            'bag': str(cfg.bag), 'rate': 1.0, 'loop': True, 'restamp': True, 'loop_offset': loop_offset,
+            'max_lag_ms': 100.0,      # a camera drops what it cannot send in time
+            'topics': played, 'wait_for_subscribers': 60.0, 'exit_when_done': False,
+            'subscribers': [f'{t}={n}' for t, n in expected.items() if n]})
+    else:
+        remaps = {c: camera_remaps(cfg.driver, cfg.registered) for c in cameras}
+        layout = {c: {'color': topics.camera_topic(c, remaps[c].get(topics.COLOR_IMAGE, topics.COLOR_IMAGE)),
+                      'depth': topics.camera_topic(c, remaps[c].get(topics.DEPTH_IMAGE, topics.DEPTH_IMAGE))}
+                  for c in cameras}
+        if cfg.color_format == 'jpeg':
+            corrector['color_transport'] = 'compressed'
+            for c in cameras:
+                filters[c]['color_transport'] = 'compressed'
+    if cfg.rig_file:
+        for c in cameras:
+            filters[c]['rig_file'] = cfg.rig_file
+    for c in cameras:
+        filters[c]['output_scale'] = cfg.depth_scale
+    nodes = rig_graph(cameras, source, filters, corrector, fusion, remaps=remaps)
+    nodes.append(live_controller(cameras, {'every': cfg.every, 'latency_budget_ms': cfg.latency_budget_ms},
+                                 remaps=remaps))
+    return nodes, cameras, layout
+
+
+def _process_cpu_s(procs: dict[str, psutil.Process]) -> dict[str, float]:
+    out = {}
+    for name, p in procs.items():
+        try:
+            t = p.cpu_times()
+            out[name] = t.user + t.system + t.children_user + t.children_system
+        except psutil.Error:
+            out[name] = float('nan')
+    return out
+
+
+def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
+             should_stop: Callable[[], bool] = lambda: False) -> dict:
+    """Runs the live graph for ``cfg.seconds`` (or until ``should_stop()`` / Ctrl-C). Returns the
+    controller's summaries, the probe's meshes and each process's CPU seconds after the warm-up."""
+    calibration = Calibration.load(cfg.calibration)
+    nodes, cameras, layout = live_nodes(cfg, calibration)
+    transport.configure()
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    summaries: list[dict] = []
+    t0 = time.monotonic()
+
+    def summarised(s: dict) -> None:
+        s['t_s'] = round(time.monotonic() - t0, 2)
+        summaries.append(s)
+        if on_summary is not None:
+            on_summary(s)
+
+    publisher = Node('volcap_live')
+    calibration_pub = publisher.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
+    calibration_pub.publish(String(data=calibration.to_yaml()))
+    executor.add_node(publisher)
+    probe = MeshProbe() if cfg.probe else None
+    if probe is not None:
+        executor.add_node(probe)
+    controller_spec = nodes[-1]
+    source = nodes[0] if cfg.bag is not None else None
+    graph = nodes[1:-1] if source else nodes[:-1]
+    procs: dict[str, object] = {}
+    hosted = []
+    codes = {}
+    cpu_start: dict[str, float] = {}
+    cpu_end: dict[str, float] = {}
+    try:
+        controller = compose(*controller_spec, on_summary=summarised)
+        executor.add_node(controller)
+        if cfg.composed:
+            hosted = [compose(*n) for n in graph]
+            for node in hosted:
+                executor.add_node(node)
+        else:
+            for pkg, exe, ns, params, remaps in graph:
+                procs[f'{exe}{"/" + ns if ns else ""}'] = start_node(pkg, exe, params, namespace=ns, remaps=remaps)
+        wait_until_subscribed(executor, publisher, cameras, layout, timeout=120.0)
+        if source is not None:
+            procs['bag_player'] = start_node(*source[:2], source[3], remaps=source[4])
+        ps = {name: psutil.Process(p.pid) for name, p in procs.items()}
+        ps['volcap_live'] = psutil.Process()
+        started = time.monotonic()      # the frames start now (the graph took a while to come up)
+        t0 = started
+        end = None if cfg.seconds is None else started + cfg.seconds
+        warm = started + cfg.warmup_s
+        while (end is None or time.monotonic() < end) and not should_stop():
+            executor.spin_once(timeout_sec=0.05)
+            if not cpu_start and time.monotonic() >= warm:
+                cpu_start = _process_cpu_s(ps)
+                cpu_start_t = time.monotonic()
+                meshes_before = len(probe.meshes) if probe else 0
+            dead = [n for n, p in procs.items() if p.poll() is not None]
+            if dead:
+                raise RuntimeError(f'{dead[0]} exited with code {procs[dead[0]].returncode}')
+        if cpu_start:
+            cpu_end = _process_cpu_s(ps)
+            window_s = time.monotonic() - cpu_start_t
+    except KeyboardInterrupt:
+        pass
+    finally:
+        codes = {name: stop(p) for name, p in procs.items()}
+        for node in hosted:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+        for node in (publisher, probe):
+            if node is not None:
+                node.destroy_node()
+        rclpy.try_shutdown()
+    result = {'cameras': cameras, 'voxel_size': cfg.voxel_size, 'mode': 'composed' if cfg.composed else 'processes',
+              'depth_scale': cfg.depth_scale, 'summaries': summaries, 'node_exit_codes': codes}
+    if cpu_end:
+        result['window_s'] = window_s
+        result['cpu_s'] = {n: cpu_end[n] - cpu_start[n] for n in cpu_end}
+    if probe is not None:
+        result['meshes'] = probe.meshes
+        result['meshes_in_window'] = len(probe.meshes) - meshes_before if cpu_end else None
+    return result
+
+
+def latency_ms(meshes: list[tuple[int, int, int]]) -> np.ndarray:
+    """Capture stamp to arrival at the probe, per mesh (stamps on the wall clock: live)."""
+    return np.array([(arrival - stamp) / 1e6 for arrival, stamp, _ in meshes])
+
+
+def summary_figures(summaries: list[dict], warmup_s: float) -> dict:
+    """The live figures over the run after the warm-up: mean rates, the share of meshes fused from
+    every camera, the worst p95 latency the fusion reported, drops per stage per second."""
+    after = [s for s in summaries if s['t_s'] >= warmup_s]
+    if not after:
+        return {'meshes_per_s': None, 'input_fps': None, 'complete_share': None, 'latency_ms_p95_max': None}
+    meshes = np.array([s['meshes_per_s'] for s in after])
+    shares = [(s['complete_share'], s['meshes_per_s']) for s in after if s['complete_share'] is not None]
+    p95 = [s['latency_ms_p95'] for s in after if s['latency_ms_p95'] is not None]
+    p50 = [s['latency_ms_p50'] for s in after if s['latency_ms_p50'] is not None]
+    drops = {stage: {k: float(np.mean([s['drops_per_s'][stage][k] for s in after]))
+                     for k in after[0]['drops_per_s'][stage]} for stage in after[0]['drops_per_s']}
+    weight = sum(m for _, m in shares)
+    return {'seconds': len(after), 'meshes_per_s': float(meshes.mean()),
+            'input_fps': float(np.mean([s['input_fps'] for s in after])),
+            'complete_share': sum(c * m for c, m in shares) / weight if weight else None,
+            'latency_ms_p50_median': float(np.median(p50)) if p50 else None,
+            'latency_ms_p95_max': float(np.max(p95)) if p95 else None,
+            'admit_every_median': float(np.median([s['admit_every'] for s in after])),
+            'cpu_busy_mean': float(np.mean([s['cpu_busy'] for s in after])), 'drops_per_s': drops}
