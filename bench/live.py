@@ -97,11 +97,15 @@ def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: fl
 
 
 def growth_per_minute(series: list[tuple[float, float]]) -> float | None:
-    """Slope of a least-squares line through (seconds, value), per minute, over the last 80 %."""
+    """Slope of a least-squares line through (seconds, value), per minute, over the steady part of
+    the run (30-85 % of it: the graph's start-up and teardown left out)."""
     if len(series) < 4:
         return None
     t, v = np.array(series).T
-    keep = t >= t[0] + 0.2 * (t[-1] - t[0])
+    span = t[-1] - t[0]
+    keep = (t >= t[0] + 0.3 * span) & (t <= t[0] + 0.85 * span)
+    if keep.sum() < 3:
+        return None
     return float(np.polyfit(t[keep], v[keep], 1)[0] * 60)
 
 
