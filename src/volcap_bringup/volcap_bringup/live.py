@@ -19,7 +19,6 @@ from typing import Callable
 import numpy as np
 import psutil
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker
@@ -29,6 +28,7 @@ from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.conversions import cdr_stamp_ns
 from volcap_core.frames import camera_topics, read_rig
+from volcap_core.ros import make_executor
 
 from .graph import LIVE_DEPTH_SCALE, LIVE_FRAME_TIMEOUT_MS, LIVE_VOXEL, NodeSpec, camera_remaps, live_controller, rig_graph, stream_remaps
 from .processes import compose, start_node, stop
@@ -146,7 +146,7 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
     nodes, cameras, layout = live_nodes(cfg, calibration)
     transport.configure()
     rclpy.init()
-    executor = SingleThreadedExecutor()
+    executor = make_executor()
     summaries: list[dict] = []
     t0 = time.monotonic()
 

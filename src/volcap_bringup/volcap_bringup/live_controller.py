@@ -7,8 +7,8 @@ Watches the first and the last camera's ``color/camera_info`` and ``depth/camera
 on ``/volcap/diagnostics``. Once per ``control_period_s`` it publishes, latched on
 ``/volcap/admission``, the rule every stage applies to capture stamps (``volcap_core.admission``):
 one frame set in ``every``, the same sets in every camera's depth filter and colour corrector and
-in the fusion. ``every`` rises when a stage drops or misses admitted frames, a set is fused
-short of cameras or the latency exceeds ``latency_budget_ms``, and falls again while the host's
+in the fusion. ``every`` rises when a stage drops admitted frames, a set is fused short of
+cameras or the latency exceeds ``latency_budget_ms``, and falls again while the host's
 CPU has room. It reports the live figures (input rate, meshes/s, share fused from every camera,
 latency p50/p95, drops per stage, each stage's CPU time per delivered mesh and the compute bound:
 the meshes/s this host's cores would sustain doing only that work) on ``/volcap/diagnostics``
@@ -144,7 +144,10 @@ class LiveController(Node):
         self._previous = {n: dict(v) for n, v in self.reports.items()}
         fused = max(0.0, fusion.get('fused', 0.0))
         p95 = fusion.get('latency_ms_p95')
-        trouble = [f'{s} {k}' for s, d in drops.items() for k in ('dropped', 'missed') if d[k] > 0]
+        # A stage's own drops are trouble; frames it missed are not by themselves (a camera or the
+        # player that dropped a set makes every stage miss it, and more admission would not help):
+        # a stage that lost frames to its queue shows downstream as a set fused incomplete.
+        trouble = [f'{s} dropped' for s, d in drops.items() if d['dropped'] > 0]
         if fusion.get('incomplete', 0) > 0:
             trouble.append('tsdf_fusion incomplete sets')
         if p95 is not None and p95 > self.cfg.latency_budget_ms:

@@ -12,7 +12,7 @@ The rule is published latched on ``/volcap/admission`` by the live controller. A
 applies from ``since_ns``, a capture stamp a little ahead of the newest one the controller has
 seen and half-way between two slots, so that stages which receive it a moment apart still switch
 at the same frame set. ``AdmissionController`` chooses ``every`` from the graph's measured load
-(additive decrease, multiplicative increase on drops, late sets or latency over budget) and keeps
+(additive decrease, multiplicative increase on drops, incomplete sets or latency over budget) and keeps
 the grid on the stamps (re-anchored when the cameras' clock drifts from it).
 """
 from __future__ import annotations
@@ -173,10 +173,10 @@ class AdmissionController:
     ``observe(stream, stamp)`` with every camera stream's capture stamps (camera_info is enough)
     keeps the grid on the frame sets (``RigClock``); ``step(now_s, trouble, cpu_busy)`` once per
     control period returns a new rule when the decimation or the grid should change: ``trouble``
-    (a stage dropped or missed admitted frames, a frame set was fused incomplete, latency over
-    budget) multiplies ``every`` by 1.5 (at most once per ``hold_s``); after ``calm_s`` without
-    trouble, ``every`` steps down by one while the measured CPU use, scaled to the higher rate,
-    stays under ``headroom``."""
+    (a stage dropped admitted frames, a frame set was fused incomplete, latency over budget)
+    multiplies ``every`` by 1.5 (at most once per ``hold_s``); after ``calm_s`` without trouble,
+    ``every`` steps down by one while the measured CPU use, scaled to the higher rate, stays
+    under ``headroom``."""
 
     def __init__(self, min_every: int = 1, max_every: int = 60, hold_s: float = 2.0, calm_s: float = 4.0,
                  headroom: float = 0.85, lead_ns: int = 300_000_000):
