@@ -1,6 +1,7 @@
 """Admission: every stage keeps the same frame sets, whatever order or offsets the stamps come in."""
 import random
 
+import numpy as np
 import pytest
 
 from volcap_core.admission import Admission, AdmissionController, AdmissionRule
@@ -87,6 +88,10 @@ def test_grid_follows_a_drifting_clock():
             kept.setdefault(k, set()).add((cam, stream))
     assert all(len(v) == 4 for v in kept.values())
     assert stage.missed == 0
+    # re-anchoring keeps the turn: once one set in 2 is admitted, exactly every other set
+    first = min(r.since_ns for r in stage.rules if r.every == 2)
+    switched = [k for k in sorted(kept) if stamps[4 * k][2] > first]
+    assert len(switched) > 300 and set(np.diff(switched)) == {2}
 
 
 def test_missed_counts_admitted_frames_that_never_arrived():

@@ -225,7 +225,15 @@ class AdmissionController:
         # no set straddles it; the new slot numbering starts with the set after it.
         target = self.clock.newest_ns + self.lead_ns
         since = centre + ((target - centre) // period) * period + period // 2
-        self.rule = AdmissionRule(every=every, origin_ns=since + period - period // 2, period_ns=period,
-                                  since_ns=since)
+        origin = since + period - period // 2       # a new decimation starts with the set after the switch
+        if every == old.every and self._anchored:
+            # Re-anchored only: the next set the old rule admits keeps its turn, so no set is
+            # admitted sooner than ``every`` periods after the last.
+            turn = -(-old.slot(since) // every) * every
+            nearest = old.origin_ns + turn * old.period_ns
+            origin = centre + round((nearest - centre) / period) * period
+            if origin <= since:
+                origin += every * period
+        self.rule = AdmissionRule(every=every, origin_ns=origin, period_ns=period, since_ns=since)
         self._anchored = True
         return self.rule

@@ -113,7 +113,12 @@ class BagPlayer(Node):
         next_pass_ns = target = time.time_ns()
         late = LateSetFilter(int(self.cfg.max_lag_ms * 1e6))
         while not self._stop.is_set():
-            schedule = Schedule(start, max(time.time_ns(), next_pass_ns), rate, self.fast)
+            # A pass that starts late keeps to the frame grid of the last (whole periods later).
+            frame_ns = int((period.period_ns or DEFAULT_PERIOD_NS) / rate)
+            late_by = time.time_ns() - next_pass_ns
+            if late_by > 0:
+                next_pass_ns += -(-late_by // frame_ns) * frame_ns
+            schedule = Schedule(start, next_pass_ns, rate, self.fast)
             for msg in self._read_ahead(reader, list(pubs), start):
                 period.add(msg.topic, msg.stamp_ns)
                 new_rate = self.cfg.rate
