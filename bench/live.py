@@ -45,11 +45,12 @@ def memory_sampler(stop: threading.Event, samples: list, period_s: float = 5.0) 
         samples.append((time.monotonic() - t0, rss / 1e6))
 
 
-def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: float, composed: bool) -> dict:
+def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: float, composed: bool,
+            source_nice: int = 0) -> dict:
     from volcap_bringup.live import LiveConfig, latency_ms, run_live, summary_figures
     from volcap_bringup.live_controller import LiveController
     cfg = LiveConfig(calibration, bag=bag, voxel_size=voxel, seconds=seconds, warmup_s=warmup, composed=composed,
-                     probe=True)
+                     probe=True, source_nice=source_nice)
     stop, memory = threading.Event(), []
     sampler = threading.Thread(target=memory_sampler, args=(stop, memory), daemon=True)
     sampler.start()
@@ -81,7 +82,8 @@ def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: fl
         key = name.split('/')[0]
         grouped[key] = grouped.get(key, 0.0) + v
     return {
-        'voxel_size': voxel, 'mode': result['mode'], 'seconds_measured': window, 'cameras': len(result['cameras']),
+        'voxel_size': voxel, 'mode': result['mode'] + (f', player nice {source_nice}' if source_nice else ''),
+        'seconds_measured': window, 'cameras': len(result['cameras']),
         'delivered_meshes_per_s': delivered,
         'latency_ms_p50': float(np.percentile(lat, 50)) if lat.size else None,
         'latency_ms_p95': float(np.percentile(lat, 95)) if lat.size else None,
@@ -145,6 +147,8 @@ def main() -> int:
     ap.add_argument('--warmup', type=float, default=15.0)
     ap.add_argument('--voxels', default='0.01,0.006')
     ap.add_argument('--composed', action='store_true', help='also run every node in one process (10 mm)')
+    ap.add_argument('--source-nice', type=int, default=0,
+                    help='run the bag player at this niceness (standing in for drivers on cores of their own)')
     ap.add_argument('--out', default=str(REPO / 'bench_out'))
     args = ap.parse_args()
     runs = []
@@ -154,7 +158,7 @@ def main() -> int:
     for voxel, composed in plan:
         print(f'{voxel * 1000:.0f} mm voxels, {"composed" if composed else "processes"}: '
               f'{args.seconds:.0f} s after the graph is up', flush=True)
-        r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed)
+        r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed, args.source_nice)
         r['memory_mb_per_minute'] = growth_per_minute(r['memory_mb'])
         r['latency_ms_per_minute'] = growth_per_minute(r['latency_series'])
         runs.append(r)

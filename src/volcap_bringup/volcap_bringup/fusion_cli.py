@@ -24,7 +24,8 @@ def cmd_live(args) -> int:
                      color_format=args.color_format, cameras=args.cameras.split(',') if args.cameras else None,
                      voxel_size=args.voxel, depth_scale=args.depth_scale, every=args.every,
                      latency_budget_ms=args.latency_budget_ms, composed=args.composed, output_dir=args.output_dir or '',
-                     rig_file=args.rig_file or '', seconds=args.seconds, warmup_s=args.warmup)
+                     rig_file=args.rig_file or '', seconds=args.seconds, warmup_s=args.warmup,
+                     source_nice=args.source_nice)
     result = run_live(cfg, on_summary=None if args.quiet else lambda s: print(LiveController.line(s), flush=True))
     result['figures'] = summary_figures(result['summaries'], cfg.warmup_s)
     f = result['figures']
@@ -89,6 +90,9 @@ def add_parsers(sub, esub) -> None:
     live.add_argument('--registered', action='store_true', help='the driver registers depth to colour')
     live.add_argument('--color-format', default='raw', choices=('raw', 'jpeg'))
     live.add_argument('--rig-file', help='rig description YAML for the depth-to-colour extrinsic')
+    live.add_argument('--source-nice', type=int, default=0,
+                      help="with --bag, the player's niceness (e.g. 10: it yields the CPU to the graph, as "
+                           "drivers on cores of their own would)")
     live.add_argument('--cameras', help='comma-separated camera namespaces (default: the calibration\'s)')
     live.add_argument('--voxel', type=float, default=0.01, help='TSDF voxel size (m)')
     live.add_argument('--depth-scale', type=float, default=0.5, help='cleaned depth size as a fraction of colour')

@@ -11,6 +11,7 @@ as calibration_service does), hosts the controller and prints its figures once a
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,6 +66,7 @@ class LiveConfig:
     seconds: float | None = None         # None: until Ctrl-C
     warmup_s: float = 10.0               # figures and CPU times from after this
     probe: bool = False
+    source_nice: int = 0                 # the bag player's niceness (it stands in for drivers on their own cores)
     fusion: dict = field(default_factory=dict)     # extra tsdf_fusion parameters
 
 
@@ -183,7 +185,9 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
                 procs[f'{exe}{"/" + ns if ns else ""}'] = start_node(pkg, exe, params, namespace=ns, remaps=remaps)
         wait_until_subscribed(executor, publisher, cameras, layout, timeout=120.0)
         if source is not None:
-            procs['bag_player'] = start_node(*source[:2], source[3], remaps=source[4])
+            nice = cfg.source_nice
+            procs['bag_player'] = start_node(*source[:2], source[3], remaps=source[4],
+                                             preexec_fn=(lambda: os.nice(nice)) if nice else None)
         ps = {name: psutil.Process(p.pid) for name, p in procs.items()}
         ps['volcap_live'] = psutil.Process()
         started = time.monotonic()      # the frames start now (the graph took a while to come up)
