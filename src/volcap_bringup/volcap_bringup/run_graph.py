@@ -95,7 +95,7 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
                      layout: dict[str, dict[str, str]]) -> list[NodeSpec]:
     """(package, executable, namespace, parameters, remaps) of every node of the graph."""
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
-    fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True,
+    fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True, 'in_order': False,
               'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
     expected = expected_subscribers(cameras, layout, played, probe=True)
     player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,

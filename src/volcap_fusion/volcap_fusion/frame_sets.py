@@ -27,6 +27,9 @@ class FusionNodeConfig:
     phases: tuple[str, ...] = setting((topics.CAPTURE,), 'session phases to fuse while one is announced on '
                                       '/volcap/phase')
     reliable: bool = setting(False, 'subscribe reliably (offline replay: lose no frame)', read_only=True)
+    in_order: bool = setting(True, 'drop a frame set older than one already sent to fusion (one left incomplete '
+                             'past a newer complete one), so a renderer never goes back in time; offline '
+                             'replay keeps them')
     marker_max_triangles: int = setting(150_000, 'the mesh marker is decimated above this', 1000, 10_000_000)
     output_dir: str = setting('', 'write the sequence (PLY + GLB per time step) here', read_only=True)
     output_formats: tuple[str, ...] = setting(('ply', 'glb'), 'sequence file formats', read_only=True)

@@ -77,7 +77,8 @@ class TsdfFusionNode(Node):
         self.infos: dict[tuple[str, str], CameraInfo] = {}
         self.camera_subscriptions = []
         self.phase = None
-        self.stats = {'fused': 0, 'fused_complete': 0, 'incomplete': 0, 'skipped': 0, 'empty': 0}
+        self.stats = {'fused': 0, 'fused_complete': 0, 'incomplete': 0, 'skipped': 0, 'empty': 0, 'out_of_order': 0}
+        self.newest_submitted = -1
         self.latency_ms: deque[tuple[float, float]] = deque(maxlen=256)    # (monotonic s, ms)
         self.work_s = 0.0      # process CPU time while fusing (includes the receiving meanwhile)
         self.last = {}
@@ -152,6 +153,10 @@ class TsdfFusionNode(Node):
         for fs in sets:
             if not fused_phase(self.phase, self.node_cfg.phases):
                 continue
+            if self.node_cfg.in_order and fs.stamp_ns < self.newest_submitted:
+                self.stats['out_of_order'] += 1
+                continue
+            self.newest_submitted = max(self.newest_submitted, fs.stamp_ns)
             if not fs.complete:
                 self.stats['incomplete'] += 1
             self.worker.submit((fs, self.calibration, list(self.cameras)))
@@ -228,7 +233,8 @@ class TsdfFusionNode(Node):
         if recent:
             p50, p95 = np.percentile(recent, [50, 95])
             latency = {'latency_ms_p50': round(float(p50), 1), 'latency_ms_p95': round(float(p95), 1)}
-        self.diagnostics.report(level, message, waiting=w.pending, dropped=w.dropped + self.stats['skipped'],
+        self.diagnostics.report(level, message, waiting=w.pending,
+                                dropped=w.dropped + self.stats['skipped'] + self.stats['out_of_order'],
                                 queue_dropped=w.dropped, errors=w.errors,
                                 work_s=round(self.work_s, 3), **self.stats, **self.last, **latency,
                                 **self.admission.counts())
