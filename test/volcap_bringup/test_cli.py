@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import cv2
+import numpy as np
 import pytest
 
 
@@ -37,3 +38,14 @@ def test_synth_info_and_preview(tmp_path, shared_data):
     run = volcap('info', tmp_path / 's')
     assert run.returncode == 0
     assert 'cam1/depth/image_raw' in run.stdout and '(latched)' in run.stdout
+
+
+def test_live_refuses_what_it_cannot_run(tmp_path):
+    """A missing calibration or a camera it lacks: a clear error before anything starts."""
+    from volcap_core.calibration import Calibration, CameraCalibration
+    run = volcap('live', '--calibration', tmp_path / 'none.yaml', '--seconds', '1')
+    assert run.returncode == 2 and 'volcap live: error:' in run.stderr
+    calibration = tmp_path / 'calibration.yaml'
+    Calibration('cam0', 'world', {'cam0': CameraCalibration(np.eye(4), 'cam0_color_optical_frame')}).save(calibration)
+    run = volcap('live', '--calibration', calibration, '--cameras', 'cam0,cam5', '--seconds', '1')
+    assert run.returncode == 2 and "['cam5'] are not in the calibration" in run.stderr

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -31,7 +31,16 @@ from volcap_core.conversions import cdr_stamp_ns
 from volcap_core.frames import camera_topics, read_rig
 from volcap_core.ros import make_executor
 
-from .graph import LIVE_DEPTH_SCALE, LIVE_FRAME_TIMEOUT_MS, LIVE_VOXEL, NodeSpec, camera_remaps, live_controller, rig_graph, stream_remaps
+from .graph import (
+    LIVE_DEPTH_SCALE,
+    LIVE_FRAME_TIMEOUT_MS,
+    LIVE_VOXEL,
+    NodeSpec,
+    camera_remaps,
+    live_controller,
+    rig_graph,
+    stream_remaps,
+)
 from .processes import compose, start_node, stop
 from .run_graph import expected_subscribers, wait_until_subscribed
 
@@ -67,7 +76,6 @@ class LiveConfig:
     warmup_s: float = 10.0               # figures and CPU times from after this
     probe: bool = False
     source_nice: int = 0                 # the bag player's niceness (it stands in for drivers on their own cores)
-    fusion: dict = field(default_factory=dict)     # extra tsdf_fusion parameters
 
 
 def _capture_offset_s(reader: BagReader) -> float:
@@ -87,7 +95,7 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
     filters = {c: {} for c in cameras}
     corrector: dict = {}
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': cfg.output_dir,
-              'frame_timeout_ms': LIVE_FRAME_TIMEOUT_MS * cfg.latency_budget_ms / 1000.0, **cfg.fusion}
+              'frame_timeout_ms': LIVE_FRAME_TIMEOUT_MS * cfg.latency_budget_ms / 1000.0}
     source = None
     if cfg.bag is not None:
         with BagReader(cfg.bag) as reader:
@@ -111,7 +119,8 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
             'subscribers': [f'{t}={n}' for t, n in expected.items() if n]})
     else:
         remaps = {c: camera_remaps(cfg.driver, cfg.registered) for c in cameras}
-        layout = {c: {'color': topics.camera_topic(c, remaps[c].get(topics.COLOR_IMAGE, topics.COLOR_IMAGE)),
+        color = topics.COLOR_COMPRESSED if cfg.color_format == 'jpeg' else topics.COLOR_IMAGE
+        layout = {c: {'color': topics.camera_topic(c, remaps[c].get(color, color)),
                       'depth': topics.camera_topic(c, remaps[c].get(topics.DEPTH_IMAGE, topics.DEPTH_IMAGE))}
                   for c in cameras}
         if cfg.color_format == 'jpeg':
@@ -140,9 +149,8 @@ def _process_cpu_s(procs: dict[str, psutil.Process]) -> dict[str, float]:
     return out
 
 
-def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
-             should_stop: Callable[[], bool] = lambda: False) -> dict:
-    """Runs the live graph for ``cfg.seconds`` (or until ``should_stop()`` / Ctrl-C). Returns the
+def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) -> dict:
+    """Runs the live graph for ``cfg.seconds`` (or until Ctrl-C). Returns the
     controller's summaries, the probe's meshes and each process's CPU seconds after the warm-up."""
     calibration = Calibration.load(cfg.calibration)
     nodes, cameras, layout = live_nodes(cfg, calibration)
@@ -174,12 +182,11 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
     cpu_start: dict[str, float] = {}
     cpu_end: dict[str, float] = {}
     try:
-        controller = compose(*controller_spec, on_summary=summarised)
-        executor.add_node(controller)
+        hosted = [compose(*controller_spec, on_summary=summarised)]
         if cfg.composed:
-            hosted = [compose(*n) for n in graph]
-            for node in hosted:
-                executor.add_node(node)
+            hosted += [compose(*n) for n in graph]
+        for node in hosted:
+            executor.add_node(node)
         else:
             for pkg, exe, ns, params, remaps in graph:
                 procs[f'{exe}{"/" + ns if ns else ""}'] = start_node(pkg, exe, params, namespace=ns, remaps=remaps)
@@ -194,7 +201,7 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
         t0 = started
         end = None if cfg.seconds is None else started + cfg.seconds
         warm = started + cfg.warmup_s
-        while (end is None or time.monotonic() < end) and not should_stop():
+        while end is None or time.monotonic() < end:
             executor.spin_once(timeout_sec=0.05)
             if not cpu_start and time.monotonic() >= warm:
                 cpu_start = _process_cpu_s(ps)
@@ -209,7 +216,8 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
     except KeyboardInterrupt:
         pass
     finally:
-        codes = {name: stop(p) for name, p in procs.items()}
+        # The source first, so no stage reports the others' absence while they stop.
+        codes = {name: stop(procs[name]) for name in reversed(list(procs))}
         for node in hosted:
             executor.remove_node(node)
             node.destroy_node()
