@@ -106,8 +106,10 @@ def test_filter_corrector_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag
     assert (depth > 0).mean() > (0.5 if not registered else 0.25)
     corrected = probe.got['/cam0/' + topics.COLOR_CORRECTED][-1][1]
     assert corrected.encoding == 'rgb8' and (corrected.height, corrected.width) == (720, 1280)
-    info = probe.got['/cam0/' + topics.COLOR_CORRECTED_INFO][-1][1]
-    assert info.header.stamp == corrected.header.stamp and abs(info.k[0] - cam.color.fx) < 1e-6
+    # each corrected image comes with its camera_info (sent just before it)
+    infos = {(m.header.stamp.sec, m.header.stamp.nanosec): m for _, m in probe.got['/cam0/' + topics.COLOR_CORRECTED_INFO]}
+    info = infos[(corrected.header.stamp.sec, corrected.header.stamp.nanosec)]
+    assert abs(info.k[0] - cam.color.fx) < 1e-6
     mesh = probe.got['/' + topics.MESH][-1][1]
     assert len(mesh.points) > 3000 and mesh.header.frame_id == color_frame     # one camera, default threshold
 
