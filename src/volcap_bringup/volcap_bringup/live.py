@@ -185,11 +185,11 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
         hosted = [compose(*controller_spec, on_summary=summarised)]
         if cfg.composed:
             hosted += [compose(*n) for n in graph]
-        for node in hosted:
-            executor.add_node(node)
         else:
             for pkg, exe, ns, params, remaps in graph:
                 procs[f'{exe}{"/" + ns if ns else ""}'] = start_node(pkg, exe, params, namespace=ns, remaps=remaps)
+        for node in hosted:
+            executor.add_node(node)
         wait_until_subscribed(executor, publisher, cameras, layout, timeout=120.0)
         if source is not None:
             nice = cfg.source_nice
