@@ -1,6 +1,8 @@
-"""`volcap live`: the graph on a bag looped at real time with fresh stamps, admission control on.
-Meshes keep arriving from the whole rig; a fusion too slow for the input rate makes the stages
-drop frame sets, and every drop is counted. No timing thresholds: only counts."""
+"""`volcap live`: the graph on a looped bag with fresh stamps, admission control on. Meshes keep
+arriving from the whole rig; a fusion too slow for the input rate makes the stages drop frame
+sets, and every drop is counted. No timing thresholds: only counts. The bag plays at half speed
+(15 fps): on a loaded 2-core CI machine 4 cameras at 30 fps take the cores before any work is done
+(docs/live.md), which is what bench/live.py measures."""
 import pytest
 
 from volcap_bringup.live import LiveConfig, run_live
@@ -35,19 +37,19 @@ def after_warmup(result, warmup):
 
 @pytest.mark.timeout(300)
 def test_live_graph_keeps_delivering_whole_meshes(live_bag, live_calibration):
-    result = run_live(LiveConfig(live_calibration, bag=live_bag, voxel_size=0.01, seconds=24, warmup_s=6,
+    result = run_live(LiveConfig(live_calibration, bag=live_bag, voxel_size=0.01, rate=0.5, seconds=30, warmup_s=8,
                                  probe=True))
     assert all(c == 0 for c in result['node_exit_codes'].values()), result['node_exit_codes']
     meshes = result['meshes']
-    assert len(meshes) >= 4, result['summaries'][-3:]
+    assert len(meshes) >= 3, result['summaries'][-3:]
     stamps = [stamp for _, stamp, _ in meshes]
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)     # newest first, none twice
     # still arriving in the last third of the run, not a burst at start-up
     last_third = result['summaries'][-1]['t_s'] * 2 / 3
     assert sum(s['meshes_per_s'] for s in result['summaries'] if s['t_s'] >= last_third) > 0
-    shares = [s['complete_share'] for s in after_warmup(result, 6) if s['complete_share'] is not None]
+    shares = [s['complete_share'] for s in after_warmup(result, 8) if s['complete_share'] is not None]
     assert shares and sum(shares) / len(shares) > 0.5, shares
-    assert {s['stages_reporting']['depth_filter'] for s in after_warmup(result, 6)} == {4}
+    assert result['summaries'][-1]['stages_reporting'] == {'depth_filter': 4, 'color_corrector': 4, 'tsdf_fusion': 1}
 
 
 @pytest.mark.timeout(300)
@@ -55,9 +57,9 @@ def test_slow_fusion_drops_are_counted(live_bag, live_calibration):
     """2 mm voxels with every frame set admitted (admission fixed at 1): the fusion cannot keep
     up, drops the oldest waiting sets and counts them; meshes still come."""
     result = run_live(LiveConfig(live_calibration, bag=live_bag, voxel_size=0.002, depth_scale=1.0, every=1,
-                                 seconds=20, warmup_s=6, probe=True))
+                                 rate=0.5, seconds=24, warmup_s=8, probe=True))
     assert all(c == 0 for c in result['node_exit_codes'].values()), result['node_exit_codes']
-    summaries = after_warmup(result, 6)
+    summaries = after_warmup(result, 8)
     assert {s['admit_every'] for s in summaries} == {1}
     fusion_drops = sum(s['drops_per_s']['tsdf_fusion']['dropped'] for s in summaries)
     assert fusion_drops > 0, summaries[-3:]

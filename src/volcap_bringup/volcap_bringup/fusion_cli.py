@@ -25,7 +25,7 @@ def cmd_live(args) -> int:
                      voxel_size=args.voxel, depth_scale=args.depth_scale, every=args.every,
                      latency_budget_ms=args.latency_budget_ms, composed=args.composed, output_dir=args.output_dir or '',
                      rig_file=args.rig_file or '', seconds=args.seconds, warmup_s=args.warmup,
-                     source_nice=args.source_nice)
+                     source_nice=args.source_nice, rate=args.rate)
     result = run_live(cfg, on_summary=None if args.quiet else lambda s: print(LiveController.line(s), flush=True))
     result['figures'] = summary_figures(result['summaries'], cfg.warmup_s)
     f = result['figures']
@@ -90,6 +90,7 @@ def add_parsers(sub, esub) -> None:
     live.add_argument('--registered', action='store_true', help='the driver registers depth to colour')
     live.add_argument('--color-format', default='raw', choices=('raw', 'jpeg'))
     live.add_argument('--rig-file', help='rig description YAML for the depth-to-colour extrinsic')
+    live.add_argument('--rate', type=float, default=1.0, help='with --bag, its playback speed (1: real time)')
     live.add_argument('--source-nice', type=int, default=0,
                       help="with --bag, the player's niceness (e.g. 10: it yields the CPU to the graph, as "
                            "drivers on cores of their own would)")

@@ -72,6 +72,7 @@ class LiveConfig:
     composed: bool = False
     output_dir: str = ''
     rig_file: str = ''
+    rate: float = 1.0                    # the bag's playback speed (1: real time)
     seconds: float | None = None         # None: until Ctrl-C
     warmup_s: float = 10.0               # figures and CPU times from after this
     probe: bool = False
@@ -113,7 +114,7 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
         played = [t for c in cameras for t in layout[c].values()] + [topics.RIG, topics.PHASE, topics.TF_STATIC]
         expected = expected_subscribers(cameras, layout, played, controller=True)
         source = ('volcap_driver', 'bag_player', {
-            'bag': str(cfg.bag), 'rate': 1.0, 'loop': True, 'restamp': True, 'loop_offset': loop_offset,
+            'bag': str(cfg.bag), 'rate': cfg.rate, 'loop': True, 'restamp': True, 'loop_offset': loop_offset,
             'max_lag_ms': 100.0,      # a camera drops what it cannot send in time
             'topics': played, 'wait_for_subscribers': 60.0, 'exit_when_done': False,
             'subscribers': [f'{t}={n}' for t, n in expected.items() if n]})
@@ -158,10 +159,11 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
     rclpy.init()
     executor = make_executor()
     summaries: list[dict] = []
-    t0 = time.monotonic()
+    clock = {'started': None}     # when the frames started (the graph takes a while to come up)
 
     def summarised(s: dict) -> None:
-        s['t_s'] = round(time.monotonic() - t0, 2)
+        started = clock['started']
+        s['t_s'] = round(time.monotonic() - started, 2) if started is not None else -1.0   # -1: starting up
         summaries.append(s)
         if on_summary is not None:
             on_summary(s)
@@ -197,8 +199,7 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
                                              preexec_fn=(lambda: os.nice(nice)) if nice else None)
         ps = {name: psutil.Process(p.pid) for name, p in procs.items()}
         ps['volcap_live'] = psutil.Process()
-        started = time.monotonic()      # the frames start now (the graph took a while to come up)
-        t0 = started
+        started = clock['started'] = time.monotonic()
         end = None if cfg.seconds is None else started + cfg.seconds
         warm = started + cfg.warmup_s
         while end is None or time.monotonic() < end:
