@@ -66,10 +66,10 @@ def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: fl
         stop.set()
     figures = summary_figures(result['summaries'], warmup)
     window = result.get('window_s') or 0.0
-    meshes = [m for m in result['meshes']]
+    meshes = result['meshes']
     start_ns = meshes[0][0] if meshes else 0
-    in_window = [m for m in meshes if (m[0] - start_ns) / 1e9 >= 0] if meshes else []
-    lat = latency_ms(in_window[-max(1, result['meshes_in_window'] or 1):]) if in_window else np.array([])
+    in_window = meshes[len(meshes) - (result['meshes_in_window'] or 0):]     # the meshes after the warm-up
+    lat = latency_ms(in_window) if in_window else np.array([])
     after = [s for s in result['summaries'] if s['t_s'] >= warmup]
     work = [s['work_ms_per_set'] for s in after if s.get('work_ms_per_set')]
     work_ms = {k: float(np.median([w[k] for w in work])) for k in work[0]} if work else {}
