@@ -8,12 +8,13 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.volcap-installed
 PACKAGES := $(wildcard src/volcap_*)
 DEMO_DIR ?= demo_out
+WEB_STAMP := web/node_modules/.volcap-installed
 
 # Large ROS messages: keep glibc from returning multi-MB buffers to the OS after every frame.
 export MALLOC_MMAP_THRESHOLD_ := 67108864
 export MALLOC_TRIM_THRESHOLD_ := 268435456
 
-.PHONY: venv lint test test-fast demo bench colcon docs clean
+.PHONY: venv web chromium lint test test-fast demo bench colcon docs clean
 
 venv: $(STAMP)
 
@@ -44,23 +45,36 @@ $(STAMP): requirements.txt constraints.txt tools/tf2_msgs/requirements.txt $(wil
 	@chmod +x $(VENV)/bin/volcap
 	@touch $(STAMP)
 
+# The browser player's three.js and the Khronos glTF validator, from npm (web/package-lock.json).
+web: $(WEB_STAMP)
+
+$(WEB_STAMP): web/package.json web/package-lock.json
+	cd web && npm ci --no-audit --no-fund --loglevel=error
+	@touch $@
+
+# Debian's Chromium: the player's tests load it headless (Playwright drives it; no browser download).
+chromium:
+	@command -v chromium >/dev/null || { \
+	  echo "installing Debian chromium (the browser tests)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }
+
 # Style (ruff) and the package layers (import-linter contracts in .importlinter).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports
 
-test: lint
+test: lint web chromium
 	$(PY) -m pytest test
 
 # No ROS nodes, nothing slow: the algorithms, the nodes' decision classes, packaging and docs.
-test-fast: lint
+test-fast: lint web
 	$(PY) -m pytest test -m 'not ros and not slow'
 
 # Regenerates the parameter tables in docs/ from the config dataclasses.
 docs: $(STAMP)
 	$(PY) -m volcap_bringup.docs
 
-demo: $(STAMP)
+demo: $(STAMP) web
 	$(VENV)/bin/volcap demo --out $(DEMO_DIR)
 
 bench: $(STAMP)

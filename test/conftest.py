@@ -12,7 +12,8 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / 'shared' / 'data'
 # Rendering or training these takes tens of seconds on 2 cores: tests that use them are `slow`.
-SLOW_FIXTURES = {'studio_bag', 'calib_bag', 'calib_bag_blind_camera', 'k4a_bag', 'capture_bag', 'trained', 'install'}
+SLOW_FIXTURES = {'browser', 'person_sequence',
+                 'studio_bag', 'calib_bag', 'calib_bag_blind_camera', 'k4a_bag', 'capture_bag', 'trained', 'install'}
 
 
 def pytest_collection_modifyitems(items):
@@ -69,14 +70,19 @@ def k4a_bag(tmp_path_factory, shared_data):
 
 @pytest.fixture(scope='session')
 def gt_calibration():
-    """A calibration with a synthetic bag's true camera poses (and, optionally, one colour model
-    for every camera)."""
-    from volcap_core.calibration import Calibration, CameraCalibration
+    """A calibration with a synthetic bag's true camera poses and studio frame (and, optionally,
+    one colour model for every camera)."""
+    import numpy as np
+
+    from volcap_core.calibration import Calibration, CameraCalibration, StudioFrame
 
     def make(gt, color: dict | None = None) -> Calibration:
-        return Calibration(gt.rig.names[0], f'{gt.rig.names[0]}_color_optical_frame',
-                           {c: CameraCalibration(gt.T_world_color(c), f'{c}_color_optical_frame', color=color)
-                            for c in gt.rig.names})
+        calibration = Calibration(gt.rig.names[0], f'{gt.rig.names[0]}_color_optical_frame',
+                                  {c: CameraCalibration(gt.T_world_color(c), f'{c}_color_optical_frame', color=color)
+                                   for c in gt.rig.names})
+        calibration.studio = StudioFrame(np.linalg.inv(np.asarray(gt.doc['T_studio_world'], float)),
+                                         details={'source': 'floor'})
+        return calibration
     return make
 
 
@@ -167,3 +173,38 @@ def play(procs):
                                                                 **params}))
         return procs[-1]
     return start
+
+
+CHROMIUM = Path('/usr/bin/chromium')
+# Debian's Chromium as root, headless, WebGL on SwiftShader (no GPU), no background traffic
+# (this machine's network is closed).
+CHROMIUM_ARGS = ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader', '--no-first-run',
+                 '--disable-background-networking', '--disable-component-update', '--disable-sync']
+
+
+@pytest.fixture(scope='session')
+def browser():
+    """Headless Debian Chromium driven by Playwright (`make test` installs both)."""
+    if not CHROMIUM.exists():
+        pytest.skip('Debian chromium is not installed (make chromium)')
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def free_port() -> int:
+    """A TCP port nobody listens on now (and the next one, for a WebSocket beside it)."""
+    import socket
+    for _ in range(50):
+        with socket.socket() as a, socket.socket() as b:
+            a.bind(('127.0.0.1', 0))
+            port = a.getsockname()[1]
+            try:
+                b.bind(('127.0.0.1', port + 1))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError('no two free neighbouring ports')

@@ -6,7 +6,6 @@ import json
 import pytest
 
 from volcap_bringup.cli import main
-from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_studio.session import GroundTruth
 
 pytestmark = pytest.mark.ros
@@ -24,12 +23,9 @@ def capture_bag(tmp_path_factory, shared_data):
 
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize('mode', ['processes', 'composed'])
-def test_volcap_run_fuses_every_capture_frame_set(capture_bag, tmp_path, mode):
+def test_volcap_run_fuses_every_capture_frame_set(capture_bag, tmp_path, mode, gt_calibration):
     gt = GroundTruth(capture_bag)
-    calibration = Calibration(gt.rig.names[0], gt.doc['world_frame'],
-                              {c: CameraCalibration(gt.T_world_color(c), f'{c}_color_optical_frame')
-                               for c in gt.rig.names})
-    calibration.save(tmp_path / 'calibration.yaml')
+    gt_calibration(gt).save(tmp_path / 'calibration.yaml')
     out = tmp_path / 'run'
     assert main(['run', str(capture_bag), '--calibration', str(tmp_path / 'calibration.yaml'), '--out', str(out),
                  '--voxel', '0.01', '--rate', '0.1', '--quiet'] + (['--composed'] if mode == 'composed' else [])) == 0
@@ -43,6 +39,7 @@ def test_volcap_run_fuses_every_capture_frame_set(capture_bag, tmp_path, mode):
     for frame in metrics['frames']:
         assert (out / 'frames' / frame['ply']).exists() and (out / 'frames' / frame['glb']).exists()
         assert frame['missing'] == [] and frame['triangles'] > 5000
+        assert frame['glb_triangles'] <= 30_000 and frame['glb_bytes'] < 200_000     # the default budget
     assert metrics['mode'] == mode
     assert len(metrics['renders']) == 2 and (out / 'renders' / 'raw_vs_clean.png').exists()
     assert len(list((out / 'renders').glob('*.png'))) == 3

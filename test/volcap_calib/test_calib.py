@@ -279,6 +279,36 @@ def test_calibrator_on_a_rendered_session(calib_bag):
     assert again.cameras['cam0'].color['method'] in outcome.color['cam0'].loo_de2000
 
 
+def test_studio_frame_is_the_floor_below_the_rig(studio_bag):
+    """The floor fitted in the clean-plate depth of all eight cameras, placed by their true
+    poses, against the studio's own frame; and the fallback when no depth shows a floor."""
+    from volcap_calib.extrinsics import depth_points
+    from volcap_calib.studio_frame import fit_studio_frame
+    from volcap_core.frames import frame_sets
+    from volcap_core.poses import transform_points
+    from volcap_core.topics import CLEAN_PLATE
+    from volcap_studio.session import GroundTruth
+    gt = GroundTruth(studio_bag)
+    poses = {c: gt.T_world_color(c) for c in gt.rig.names}
+    fs = next(iter(frame_sets(studio_bag, phases=(CLEAN_PLATE,))))
+    points = {c: transform_points(poses[c], depth_points(f.depth, f.depth_model, gt.rig.camera(c).T_color_depth))
+              for c, f in fs.cameras.items()}
+    studio = fit_studio_frame(poses, 'cam0', points)
+    ours_in_truth = np.asarray(gt.doc['T_studio_world'], float) @ studio.T_world_studio
+    assert studio.details['source'] == 'floor' and studio.details['floor_rms_mm'] < 10
+    assert np.degrees(np.arccos(ours_in_truth[2, 2])) < 0.2           # +Z is up
+    assert abs(ours_in_truth[2, 3]) < 0.005                            # the origin is on the floor
+    assert np.linalg.norm(ours_in_truth[:2, 3]) < 0.10                 # below the capture centre
+    towards_cam0 = np.linalg.inv(studio.T_world_studio) @ poses['cam0'][:, 3]
+    assert towards_cam0[0] > 0.5 and abs(towards_cam0[1]) < 1e-6       # +X faces the reference camera
+    # no depth: up from the cameras, said so
+    guess = fit_studio_frame(poses, 'cam0', {})
+    assert guess.details['source'] == 'cameras'
+    again = Calibration('cam0', 'w', {'cam0': CameraCalibration(np.eye(4))})
+    again.studio = studio
+    assert np.allclose(Calibration.from_yaml(again.to_yaml()).studio.T_world_studio, studio.T_world_studio)
+
+
 def test_calibration_file_is_versioned_and_validated(tmp_path):
     cal = Calibration('cam0', 'cam0_color_optical_frame', {'cam0': CameraCalibration(np.eye(4), views=3)})
     path = cal.save(tmp_path / 'calibration.yaml')

@@ -1,19 +1,22 @@
 """TSDF fusion without ROS: a sphere seen by distorted cameras, volume reuse, the capture box,
 edge-preserving depth resampling, bad input, the sequence files and the mesh marker; and the
 real rgbd_box frames against a bare Open3D integration."""
+import json
+
 import cv2
 import numpy as np
 import pytest
 
 from volcap_core.camera import CameraModel, depth_to_millimetres
+from volcap_core.poses import convergence_point
 from volcap_eval.render import camera_up, look_at, orbit_views, render
-from volcap_fusion.sequence import SequenceWriter, glb_bytes, read_glb, read_manifest, read_ply
+from volcap_fusion.glb import EncodeConfig, decode_glb, simplify
+from volcap_fusion.sequence import SUMMARY, SequenceWriter, T_world_frame, read_manifest, read_ply, read_sequence
 from volcap_fusion.tsdf import (
     CameraView,
     FusionConfig,
     Rectifier,
     TsdfFusion,
-    convergence_point,
     effective_weight_threshold,
 )
 
@@ -62,14 +65,15 @@ def test_fused_sphere_is_accurate_and_colored():
 
 def test_one_camera_still_gives_a_mesh():
     """A voxel one camera saw has weight 1: the threshold is capped below the cameras fused."""
-    cfg = FusionConfig(voxel_size=0.01, box_center=(0.0, 0.0, 0.0))
-    assert cfg.weight_threshold == 1.0
+    cfg = FusionConfig(voxel_size=0.01, box_center=(0.0, 0.0, 0.0), weight_threshold=1.0)
     model = TsdfFusion(cfg).fuse([sphere_view('cam0', 0.0)])
     assert len(model.triangles) > 500
     r = np.linalg.norm(model.vertices, axis=1)
     assert np.median(np.abs(r - RADIUS)) < 0.005
-    # with more cameras the default still asks for two observations
+    # with more cameras a threshold of 1 asks for two observations; the default (0.5) for one:
+    # surfaces only one camera sees (feet, the floor contact) are kept
     assert effective_weight_threshold(1.0, 1) == 0.0 and effective_weight_threshold(1.0, 8) == 1.0
+    assert effective_weight_threshold(FusionConfig().weight_threshold, 8) == 0.5
 
 
 def test_an_empty_stage_is_an_empty_model_not_an_error():
@@ -217,35 +221,45 @@ def test_bad_views_are_refused_with_the_reason():
 
 def test_sequence_files_round_trip(tmp_path):
     model = TsdfFusion(FusionConfig(voxel_size=0.01)).fuse(sphere_views())
-    writer = SequenceWriter(tmp_path)
-    writer.write(model, 123, missing=['cam9'])
-    writer.write(model, 456)
+    writer = SequenceWriter(tmp_path, encoding=EncodeConfig(encoding='raw', max_triangles=0))
+    T = np.eye(4)
+    T[:3, 3] = (1.0, 2.0, 3.0)
+    writer.write(model, 1_000_000_000, missing=['cam9'], T_world_frame=T)
+    writer.write(model, 1_033_333_333, T_world_frame=T)
+    writer.close()
     with open(tmp_path / 'sequence.jsonl', 'a') as f:
         f.write('{"index": 2, "sta')             # a line still being written is skipped
-    frames = read_manifest(tmp_path)
-    assert [f['stamp_ns'] for f in frames] == [123, 456] and frames[0]['missing'] == ['cam9']
-    glb = read_glb(tmp_path / frames[1]['glb'])
-    assert np.array_equal(glb.vertices, model.vertices) and np.array_equal(glb.colors, model.colors)
-    assert np.array_equal(glb.triangles, model.triangles)
+    headers, frames = read_sequence(tmp_path)
+    assert [f['stamp_ns'] for f in frames] == [1_000_000_000, 1_033_333_333] and frames[0]['missing'] == ['cam9']
+    assert read_manifest(tmp_path) == frames
+    assert len(headers) == 1 and headers[0]['frame'] == 'volcap_studio' and np.allclose(T_world_frame(headers, 1), T)
+    assert frames[1]['glb_bytes'] == (tmp_path / frames[1]['glb']).stat().st_size
+    summary = json.loads((tmp_path / SUMMARY).read_text())
+    assert summary['frames'] == 2 and abs(summary['frame_rate'] - 30.0) < 0.01
+    glb, extras = decode_glb((tmp_path / frames[1]['glb']).read_bytes())
+    assert extras['volcap']['stamp_ns'] == '1033333333' and extras['volcap']['index'] == 1
+    # raw keeps every triangle, reordered for the vertex cache: the same surface and colours
+    assert len(glb.triangles) == len(model.triangles)
+    assert np.allclose(np.sort(glb.vertices, axis=0), np.sort(model.vertices, axis=0), atol=1e-6)
+    assert np.array_equal(np.sort(glb.colors, axis=0), np.sort(model.colors, axis=0))
     ply = read_ply(tmp_path / frames[0]['ply'])
     assert np.allclose(ply.vertices, model.vertices, atol=1e-6) and np.array_equal(ply.colors, model.colors)
-    assert glb_bytes(model)[:4] == b'glTF'
     assert not list(tmp_path.glob('.*'))           # no temporary file left behind
     with pytest.raises(FileExistsError):
         SequenceWriter(tmp_path)
 
 
-def test_mesh_marker_deserialises_and_decimation_bounds_it():
+def test_mesh_marker_deserialises_and_simplification_bounds_it():
     from rclpy.serialization import deserialize_message
     from visualization_msgs.msg import Marker
 
     from volcap_core.conversions import mesh_to_marker_cdr
     model = TsdfFusion(FusionConfig(voxel_size=0.01)).fuse(sphere_views())
-    small = model.decimated(len(model.triangles) // 4, 0.01)
+    small = simplify(model, len(model.triangles) // 4)
     assert 0 < len(small.triangles) <= len(model.triangles) // 4
     msg = deserialize_message(mesh_to_marker_cdr(small.vertices, small.colors, small.triangles, 5_000_000_123,
-                                                 'volcap_world'), Marker)
-    assert msg.type == Marker.TRIANGLE_LIST and msg.header.frame_id == 'volcap_world'
+                                                 'volcap_studio'), Marker)
+    assert msg.type == Marker.TRIANGLE_LIST and msg.header.frame_id == 'volcap_studio'
     assert msg.header.stamp.sec == 5 and msg.header.stamp.nanosec == 123
     assert len(msg.points) == len(msg.colors) == 3 * len(small.triangles)
     k = len(small.triangles) // 2

@@ -14,6 +14,8 @@
     volcap eval color BAG --calibration calibration.yaml [--json OUT.json] [--figures DIR]
     volcap color-fit BAG --calibration calibration.yaml --out calibration_color.yaml
     volcap run BAG --calibration calibration.yaml --out DIR [--composed] [--voxel 0.004]
+    volcap view DIR | --live [--port 8080]
+    volcap operator [--cameras cam0,cam1] [--hz 2] [--web-port 9090]
     volcap eval fusion DIR BAG [--json OUT.json]
     volcap fuse-frames FOLDER --intrinsics K.txt --out mesh.ply [--voxel 0.01]
     volcap demo [--out DIR]
@@ -203,7 +205,9 @@ def cmd_demo(args) -> int:
     fusion = evaluate_fusion(run, bag, max_frames=5)
     write_json(out / 'fusion.json', fusion)
     print(f'{fusion["frames"]} frames: accuracy {fusion["accuracy_mm"]:.2f} mm, completeness '
-          f'{100 * fusion["completeness"]:.1f} % of the observable surface')
+          f'{100 * fusion["completeness"]:.1f} % of the observable surface, '
+          f'{100 * (fusion["completeness_feet"] or 0):.1f} % of its lowest 15 cm (feet)')
+    print(f'play it: volcap view {run / "frames"}')
     print(f'meshes: {run / "frames"} (PLY + GLB per frame set)  renders: {run / "renders"} '
           f'(raw vs cleaned: {run / "renders" / "raw_vs_clean.png"})  metrics: {run / "metrics.json"}')
     return 0

@@ -1,5 +1,7 @@
-"""`volcap run`, `volcap live`, `volcap eval fusion` and `volcap fuse-frames`."""
+"""`volcap run`, `volcap live`, `volcap view`, `volcap eval fusion` and `volcap fuse-frames`."""
 from __future__ import annotations
+
+from pathlib import Path
 
 from volcap_core.files import write_json
 from volcap_fusion import VOXEL_SIZE
@@ -42,12 +44,40 @@ def cmd_live(args) -> int:
     return 1 if failed else 0
 
 
+def cmd_view(args) -> int:
+    from .view import ViewConfig, run_view
+    if not args.live and not args.folder:
+        raise ValueError('give a sequence folder (DIR/frames of `volcap run --out DIR`) or --live')
+
+    def ready(url: str) -> None:
+        what = 'the newest mesh on /volcap/mesh/glb' if args.live else f'the sequence in {args.folder}'
+        print(f'volcap view: open {url} ({what}); Ctrl-C stops', flush=True)
+    run_view(ViewConfig(Path(args.folder) if args.folder else None, args.live, args.host, args.port, args.ws_port),
+             ready)
+    return 0
+
+
+def cmd_operator(args) -> int:
+    from volcap_core.topics import camera_names
+
+    from .operator_view import OperatorConfig, run_operator
+    cameras = tuple(c for c in args.cameras.split(',') if c) if args.cameras else tuple(camera_names(args.n))
+    cfg = OperatorConfig(cameras, args.hz, color_transport=args.color_transport, web_port=args.web_port,
+                         grpc_port=args.grpc_port)
+    run_operator(cfg, lambda url: print(f'volcap operator: open {url} ({len(cameras)} cameras at {args.hz:g} Hz, '
+                                        'the fused model); Ctrl-C stops', flush=True))
+    return 0
+
+
 def cmd_eval_fusion(args) -> int:
     from volcap_eval.fusion import evaluate_fusion
     report = evaluate_fusion(args.dir, args.bag, progress=not args.quiet, max_frames=args.frames)
     print(f'{report["frames"]} frames: accuracy {report["accuracy_mm"]:.2f} mm (mean distance to the subject), '
           f'completeness {100 * report["completeness"]:.1f} % of the observable surface within '
           f'{report["completeness_threshold_mm"]:.0f} mm ({100 * report["completeness_all"]:.1f} % of all of it)')
+    if report['completeness_feet'] is not None:
+        print(f'  lowest {100 * report["feet_m"]:.0f} cm of the subject (feet, floor contact): completeness '
+              f'{100 * report["completeness_feet"]:.1f} %')
     if args.json:
         write_json(args.json, report)
         print(f'wrote {args.json}')
@@ -114,6 +144,24 @@ def add_parsers(sub, esub) -> None:
     e.add_argument('--frames', type=int, default=None, help='score only the first N frames')
     e.add_argument('--quiet', action='store_true')
     e.set_defaults(func=cmd_eval_fusion)
+
+    v = sub.add_parser('view', help='play a fused sequence (or the live mesh) in the browser: three.js on localhost')
+    v.add_argument('folder', nargs='?', help='sequence folder (sequence.jsonl; DIR/frames of volcap run)')
+    v.add_argument('--live', action='store_true', help='show the newest mesh of a running graph (volcap/mesh/glb)')
+    v.add_argument('--host', default='127.0.0.1', help='address to serve on (default: this machine only)')
+    v.add_argument('--port', type=int, default=8080, help='HTTP port of the page')
+    v.add_argument('--ws-port', type=int, default=0, help='WebSocket port of --live (default: port + 1)')
+    v.set_defaults(func=cmd_view)
+
+    o = sub.add_parser('operator', help="the operator's live view: camera images, cleaned depth and the fused "
+                       'model in Rerun\'s web viewer, served on localhost')
+    o.add_argument('--cameras', default='', help='comma-separated camera namespaces (default: cam0..cam<n-1>)')
+    o.add_argument('--n', type=int, default=8, help='number of cameras when --cameras is not given')
+    o.add_argument('--hz', type=float, default=2.0, help='frames forwarded per stream and second')
+    o.add_argument('--color-transport', choices=('raw', 'compressed'), default='raw')
+    o.add_argument('--web-port', type=int, default=9090)
+    o.add_argument('--grpc-port', type=int, default=9876)
+    o.set_defaults(func=cmd_operator)
 
     f = sub.add_parser('fuse-frames', help='fuse a folder of posed RGB-D frames (frame-NNNNNN.color/depth/pose)')
     f.add_argument('folder')

@@ -296,18 +296,21 @@ def run(cfg: RunConfig) -> RunReport:
     metrics['frames'] = frames
     calibration = Calibration.load(cfg.calibration)
     cameras = metrics['cameras']
-    poses = [calibration.T_world_color(c) for c in cameras]
+    _, T_frame_world = calibration.output_frame()       # the frames are in the studio frame
+    poses = {c: T_frame_world @ calibration.T_world_color(c) for c in cameras}
+    on_floor = calibration.studio is not None and calibration.studio.details.get('source') == 'floor'
+
     if frames:
         picks = sorted({0, len(frames) // 2, len(frames) - 1})
-        metrics['renders'] = [str(render_rows([(f'frame {k}', read_ply(out / 'frames' / frames[k]['ply']))], poses,
+        metrics['renders'] = [str(render_rows([(f'frame {k}', read_ply(out / 'frames' / frames[k]['ply']))],
+                                              list(poses.values()),
                                               out / 'renders' / f'frame_{k:06d}.png')) for k in picks]
         middle = frames[len(frames) // 2]
         try:
-            raw = raw_fusion(cfg.bag, middle['stamp_ns'], {c: calibration.T_world_color(c) for c in cameras},
-                             FusionConfig(voxel_size=cfg.voxel_size))
+            raw = raw_fusion(cfg.bag, middle['stamp_ns'], poses, FusionConfig(voxel_size=cfg.voxel_size), on_floor)
             clean = read_ply(out / 'frames' / middle['ply'])
             metrics['raw_vs_clean'] = str(render_rows([('raw depth + raw colour', raw),
-                                                       ('volcap: cleaned + corrected', clean)], poses,
+                                                       ('volcap: cleaned + corrected', clean)], list(poses.values()),
                                                       out / 'renders' / 'raw_vs_clean.png', frame_on=clean))
         except ValueError as e:     # the figure is extra: the sequence and metrics are kept
             metrics['raw_vs_clean_error'] = str(e)

@@ -4,7 +4,8 @@
 ``Calibrator.add`` takes one synchronised frame set, detects the board in every camera, poses
 it and keeps only what the solve needs (corners, a few depth points, the 24 patch colours), so
 a long calibration session costs little memory. ``Calibrator.solve`` runs the joint extrinsic
-solve and the per-camera colour fits and returns a ``Calibration``.
+solve and the per-camera colour fits and returns a ``Calibration``, with the studio frame
+fitted to the floor in the cameras' latest depth (``studio_frame``).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from volcap_core.calibration import Calibration, CameraCalibration
+from volcap_core.calibration import Calibration, CameraCalibration, StudioFrame
 from volcap_core.camera import CameraModel
 from volcap_core.poses import transform_points
 from volcap_core.rig import Rig
@@ -27,10 +28,12 @@ from .extrinsics import (
     Observation,
     SolverConfig,
     check_against_depth,
+    depth_points,
     solve_rig,
     target_depth_points,
     target_pose,
 )
+from .studio_frame import FloorConfig, fit_studio_frame
 
 
 @dataclass
@@ -105,6 +108,7 @@ class Calibrator:
         self.patch_pixels: dict[str, list[np.ndarray]] = {c: [] for c in rig.names}
         self.models: dict[str, CameraModel] = {}
         self.views = 0
+        self.floor_points: dict[str, np.ndarray] = {}   # latest depth points per camera (colour frame)
         self._grid_region = (0.0, 0.0, *board.grid_size)   # depth is sampled on the ChArUco grid
 
     def add(self, view: int, frames: dict[str, CameraFrame]) -> dict[str, str]:
@@ -115,6 +119,8 @@ class Calibrator:
             if name not in self.rejected:
                 status[name] = 'not in the rig'
                 continue
+            if frame.depth is not None and frame.depth_model is not None:
+                self._keep_floor_points(name, frame)
             try:
                 status[name] = self._add_camera(view, name, frame)
             except (DetectionError, ValueError) as e:
@@ -146,6 +152,19 @@ class Calibrator:
             self.patches[name].append((view, colors))
             self.patch_pixels[name].append(centres)
         return f'{len(detection)} corners, PnP {rms:.2f} px'
+
+    def _keep_floor_points(self, name: str, frame: CameraFrame) -> None:
+        try:
+            points = depth_points(frame.depth, frame.depth_model, self.rig.camera(name).T_color_depth)
+        except ValueError:
+            return          # the frame's own detection reports the mismatch
+        step = max(1, len(points) // FloorConfig.points_per_camera)
+        self.floor_points[name] = points[::step]
+
+    def studio_frame(self, T_world_color: dict[str, np.ndarray], reference: str) -> StudioFrame:
+        """The studio frame: the floor in the cameras' latest depth, placed by the calibrated poses."""
+        points = {c: transform_points(T_world_color[c], p) for c, p in self.floor_points.items() if c in T_world_color}
+        return fit_studio_frame(T_world_color, reference, points)
 
     def reference(self) -> np.ndarray:
         return reference_srgb8(self.board.chart.reference) / 255.0
@@ -201,6 +220,7 @@ class Calibrator:
                                   extra={'board': self.board.to_dict(), 'rig': self.rig.name,
                                          'frame_sets': self.views,
                                          'colour_errors': color_errors})
+        calibration.studio = self.studio_frame(extrinsics.T_world_color, reference)
         return CalibrationOutcome(calibration, extrinsics, fits, color_errors)
 
 

@@ -11,7 +11,8 @@ needs no transform). Subscriptions are reliable (a board view lost in transport 
 accuracy); the board is detected in a worker thread (a bounded drop-oldest queue keeps the
 subscriptions free). ``volcap/calibrate`` (std_srvs/Trigger) solves with every view gathered so
 far, writes ``output`` atomically and publishes the result latched on ``volcap/calibration``
-(YAML) and ``volcap/camera_poses`` (PoseArray, world = reference colour frame). On failure the
+(YAML, with the studio frame fitted to the floor in the cameras' depth) and
+``volcap/camera_poses`` (PoseArray of the cameras' colour frames in the studio frame). On failure the
 response names the cameras and why, and the previous file and topics stay as they were.
 """
 from __future__ import annotations
@@ -216,8 +217,9 @@ class CalibrationService(Node):
 
     def _publish(self, calibration: Calibration) -> None:
         self.pub_calibration.publish(String(data=calibration.to_yaml()))
-        poses = PoseArray(header=make_header(time.time_ns(), calibration.world_frame))
-        poses.poses = [matrix_to_pose(cam.T_world_color) for cam in calibration.cameras.values()]
+        frame, T_frame_world = calibration.output_frame()
+        poses = PoseArray(header=make_header(time.time_ns(), frame))
+        poses.poses = [matrix_to_pose(T_frame_world @ cam.T_world_color) for cam in calibration.cameras.values()]
         self.pub_poses.publish(poses)
 
     def _report(self) -> None:

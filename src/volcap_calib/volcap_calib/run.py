@@ -120,6 +120,13 @@ class CalibrateReport:
     def lines(self) -> list[str]:
         out = [f'wrote {self.files["calibration"]} ({len(self.calibration.cameras)} cameras, {self.observations} '
                f'board observations in {self.frame_sets} frame sets); report {self.files["report"]}']
+        studio = self.calibration.studio
+        if studio.details.get('source') == 'floor':
+            out.append(f'  studio frame: floor fitted to {studio.details["floor_points"]} depth points, RMS '
+                       f'{studio.details["floor_rms_mm"]:.1f} mm; cameras {min(studio.details["camera_height_m"]):.2f}-'
+                       f'{max(studio.details["camera_height_m"]):.2f} m above it')
+        else:
+            out.append(f'  studio frame: NO FLOOR SEEN: {studio.details.get("note", "")}')
         for c, rep in self.outcome.extrinsics.cameras.items():
             col = self.color.get(c)
             depth = f'{rep.depth_rms_mm:5.2f} mm' if rep.depth_rms_mm is not None else '   -    '
@@ -145,11 +152,15 @@ def run(cfg: CalibrateConfig) -> CalibrateReport:
     outcome = calibrator.solve()
     calibration = outcome.calibration
     icp = refine_from_bag(cfg.bag, calibration, cfg.icp_frame) if cfg.icp else None
+    if icp is not None and 'skipped' not in icp:      # the floor placed by the refined poses
+        calibration.studio = calibrator.studio_frame({c: cam.T_world_color for c, cam in calibration.cameras.items()},
+                                                     calibration.reference)
     out = Path(cfg.out)
     calibration.save(out)
     report_dir = Path(cfg.report_dir) if cfg.report_dir else out.parent
     color = color_report(calibration, calibrator)
     report = {'calibration': str(out), 'reference': calibration.reference, 'frame_sets': calibrator.views,
+              'studio': calibration.studio.to_dict(),
               'cameras': {c: outcome.extrinsics.cameras[c].to_dict() for c in calibration.cameras},
               'colour': color, 'colour_average': color_summary(color), 'colour_errors': outcome.color_errors}
     if icp is not None:

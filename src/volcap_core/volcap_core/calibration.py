@@ -10,9 +10,33 @@ import numpy as np
 import yaml
 
 from .files import atomic_write
-from .poses import matrix_from_list, matrix_to_list
+from .poses import invert, matrix_from_list, matrix_to_list
 
 VERSION = 1
+STUDIO_FRAME = 'volcap_studio'
+
+
+@dataclass
+class StudioFrame:
+    """The gravity-aligned studio frame (REP 103: +Z up, origin on the floor at the centre of the
+    capture volume) in the calibration's world frame, and how it was found."""
+    T_world_studio: np.ndarray
+    name: str = STUDIO_FRAME
+    details: dict = field(default_factory=dict)   # source ('floor' or 'cameras'), floor fit figures
+
+    def to_dict(self) -> dict:
+        return {'frame': self.name, 'T_world_studio': matrix_to_list(self.T_world_studio), **self.details}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> 'StudioFrame':
+        if not isinstance(d, dict) or 'T_world_studio' not in d:
+            raise ValueError('studio: expected a mapping with T_world_studio')
+        T = matrix_from_list(d['T_world_studio'])
+        R = T[:3, :3]
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise ValueError('studio: T_world_studio is not a rigid transform')
+        return cls(T, str(d.get('frame', STUDIO_FRAME)), {k: v for k, v in d.items()
+                                                          if k not in ('frame', 'T_world_studio')})
 
 
 @dataclass
@@ -48,6 +72,23 @@ class Calibration:
         if camera not in self.cameras:
             raise KeyError(f'camera {camera!r} is not in the calibration ({", ".join(self.cameras)})')
         return self.cameras[camera].T_world_color
+
+    @property
+    def studio(self) -> StudioFrame | None:
+        """The studio frame, when the calibration found one (files before it have none)."""
+        return StudioFrame.from_dict(self.extra['studio']) if 'studio' in self.extra else None
+
+    @studio.setter
+    def studio(self, frame: StudioFrame) -> None:
+        self.extra['studio'] = frame.to_dict()
+
+    def output_frame(self) -> tuple[str, np.ndarray]:
+        """(frame id, T_frame_world) fused output is given in: the studio frame, or the world
+        frame itself for a calibration without one."""
+        studio = self.studio
+        if studio is None:
+            return self.world_frame, np.eye(4)
+        return studio.name, invert(studio.T_world_studio)
 
     def to_yaml(self) -> str:
         doc = {'version': VERSION, 'created': self.created, 'reference': self.reference,

@@ -18,6 +18,7 @@ from geometry_msgs.msg import Pose, TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
+from visualization_msgs.msg import Marker, MeshFile
 
 from .camera import DISTORTION_MODELS, CameraModel
 from .poses import from_xyz_quat, to_xyz_quat
@@ -388,3 +389,22 @@ def mesh_to_marker_cdr(vertices: np.ndarray, colors: np.ndarray, triangles: np.n
     w.sequence(np.zeros(0, np.uint8), 1)
     w.scalars('u1', 0)                                      # mesh_use_embedded_materials
     return w.bytes()
+
+
+# glTF meshes are +Y up with the front towards +Z; the studio frame is REP 103 (+Z up, +X front).
+# This rotation takes glTF coordinates (gx, gy, gz) to the studio's (gz, gx, gy).
+GLTF_IN_STUDIO = np.array([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], float)
+
+
+def glb_marker(glb: bytes, stamp_ns: int, frame_id: str, name: str, ns: str = 'volcap', marker_id: int = 0
+               ) -> Marker:
+    """A visualization_msgs/Marker MESH_RESOURCE carrying a GLB in ``mesh_file`` (Jazzy's embedded
+    mesh: ``mesh_resource`` is ``embedded://<name>``). The pose turns the GLB's +Y-up axes into
+    the (+Z-up) ``frame_id``, so a renderer that applies it, as RViz does, shows the mesh upright."""
+    marker = Marker(header=make_header(stamp_ns, frame_id), ns=ns, id=marker_id, type=Marker.MESH_RESOURCE,
+                    action=Marker.ADD, pose=matrix_to_pose(GLTF_IN_STUDIO), mesh_resource=f'embedded://{name}',
+                    mesh_use_embedded_materials=True)
+    marker.scale.x = marker.scale.y = marker.scale.z = 1.0
+    marker.color.a = 1.0
+    marker.mesh_file = MeshFile(filename=name, data=glb)
+    return marker

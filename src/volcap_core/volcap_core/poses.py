@@ -78,3 +78,17 @@ def matrix_from_list(rows) -> np.ndarray:
     if T.shape != (4, 4):
         raise ValueError(f'expected a 4x4 matrix, got shape {T.shape}')
     return T
+
+
+def convergence_point(poses: list[np.ndarray]) -> np.ndarray:
+    """The point closest (least squares) to every camera's optical axis (z of each pose)."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for T in poses:
+        T = np.asarray(T, float)
+        axis = T[:3, 2] / np.linalg.norm(T[:3, 2])
+        P = np.eye(3) - np.outer(axis, axis)
+        A += P
+        b += P @ T[:3, 3]
+    if len(poses) < 2 or np.linalg.cond(A) > 1e6:
+        raise ValueError('cameras aimed from one direction have no convergence point')
+    return np.linalg.solve(A, b)

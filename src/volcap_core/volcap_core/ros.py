@@ -30,7 +30,7 @@ RCLError = _rclpy.RCLError
 
 
 def make_executor():
-    """The executor a node process spins: rclpy's C++ EventsExecutor, which takes 1.5 ms of CPU per
+    """The executor a node process spins: rclpy's C++ EventsExecutor, which takes 1.2 ms of CPU per
     2.7 MB image where the SingleThreadedExecutor takes 2.0 ms (bench/live.py, receive side);
     ``VOLCAP_EXECUTOR=single`` selects the SingleThreadedExecutor (for comparisons)."""
     if os.environ.get('VOLCAP_EXECUTOR') == 'single':

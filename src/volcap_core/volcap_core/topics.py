@@ -21,6 +21,7 @@ CALIBRATION = 'volcap/calibration'
 CAMERA_POSES = 'volcap/camera_poses'
 FUSED_POINTS = 'volcap/points'
 MESH = 'volcap/mesh'
+MESH_GLB = 'volcap/mesh/glb'
 DIAGNOSTICS = 'volcap/diagnostics'
 # Which capture frame sets a live graph processes (volcap_core.admission), from volcap live.
 ADMISSION = 'volcap/admission'

@@ -10,7 +10,12 @@ to the synthetic bag's ground truth, and scored against the subject mesh at that
   a surface too dark in the infrared for the sensor to return depth from most of it) and the
   point lies in that camera's colour image (the cleaned depth is registered to colour). The
   synthetic subject is a union of overlapping solids whose inner faces no camera can see, and
-  the soles rest on the floor; ``completeness_all`` scores the whole mesh for reference.
+  the soles rest on the floor; ``completeness_all`` scores the whole mesh for reference;
+- completeness_feet: the same over the lowest 15 cm of the subject (gravity frame), where the
+  floor meets the feet and cleaning is hardest.
+
+The fused frames are in the studio frame; the sequence header's ``T_world_frame`` takes them
+back to the ground truth's world frame.
 
 ``raw_fusion``: a bag's frame set fused straight from the raw streams, for the raw-vs-clean
 figure of `volcap run` (paper 000, Figs. 16 and 18).
@@ -31,8 +36,8 @@ from tqdm import tqdm
 
 from volcap_core.camera import CameraModel, depth_to_millimetres
 from volcap_core.files import write_json
-from volcap_core.poses import invert
-from volcap_fusion.sequence import read_manifest, read_ply, write_ply
+from volcap_core.poses import invert, transform_points
+from volcap_fusion.sequence import T_world_frame, read_ply, read_sequence, write_ply
 from volcap_fusion.tsdf import (
     CameraView,
     FusedModel,
@@ -44,6 +49,7 @@ from volcap_fusion.tsdf import (
 )
 
 COMPLETENESS_MM = 5.0
+FEET_M = 0.15               # the lowest this much of the subject is scored on its own (feet, floor contact)
 DROPOUT_WINDOW_PX = 7       # neighbourhood over which a sensor's dropout rate is judged
 MAX_DROPOUT_RATE = 0.5      # a point is unmeasurable where the sensor drops most returns around it
 
@@ -100,21 +106,29 @@ def observable(points: np.ndarray, normals: np.ndarray, scene: o3d.t.geometry.Ra
     return seen
 
 
-def score_frame(model: FusedModel, truth: o3d.geometry.TriangleMesh, sensors, tof: dict, samples: int = 200_000
-                ) -> dict:
-    """Accuracy and completeness of one fused frame against its ground-truth mesh."""
+def score_frame(model: FusedModel, truth: o3d.geometry.TriangleMesh, sensors, tof: dict, samples: int = 200_000,
+                T_studio_world: np.ndarray | None = None) -> dict:
+    """Accuracy and completeness of one fused frame against its ground-truth mesh (both in the
+    world frame). With ``T_studio_world`` (gravity: +Z up) the lowest ``FEET_M`` of the subject
+    (feet and floor contact) is also scored on its own: ``completeness_feet``."""
     gt_v, gt_t = np.asarray(truth.vertices), np.asarray(truth.triangles)
     gt_scene = raycasting_scene(gt_v, gt_t)
     if len(model.vertices) == 0:
-        return {'accuracy_mm': None, 'completeness': 0.0, 'completeness_all': 0.0, 'vertices': 0}
+        return {'accuracy_mm': None, 'completeness': 0.0, 'completeness_all': 0.0, 'completeness_feet': 0.0,
+                'vertices': 0}
     d_fused = gt_scene.compute_distance(o3d.core.Tensor(model.vertices.astype(np.float32))).numpy()
     points, normals = surface_samples(gt_v, gt_t, samples)
     seen = observable(points, normals, gt_scene, sensors, tof['min_range'], tof['max_range'], tof['grazing_cos'])
     d_truth = model.raycasting_scene().compute_distance(
         o3d.core.Tensor(points.astype(np.float32))).numpy()
     close = d_truth <= COMPLETENESS_MM / 1000
+    feet = {}
+    if T_studio_world is not None:
+        height = transform_points(T_studio_world, points)[:, 2]
+        low = seen & (height < transform_points(T_studio_world, gt_v)[:, 2].min() + FEET_M)
+        feet = {'completeness_feet': float(close[low].mean()) if low.any() else None}
     return {'accuracy_mm': float(d_fused.mean() * 1000), 'accuracy_median_mm': float(np.median(d_fused) * 1000),
-            'accuracy_p90_mm': float(np.percentile(d_fused, 90) * 1000),
+            'accuracy_p90_mm': float(np.percentile(d_fused, 90) * 1000), **feet,
             'completeness': float(close[seen].mean()) if seen.any() else 0.0,
             'completeness_all': float(close.mean()), 'observable_fraction': float(seen.mean()),
             'vertices': int(len(model.vertices))}
@@ -125,7 +139,7 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
     from volcap_studio.session import GroundTruth
     gt = GroundTruth(bag)
     frames_dir = Path(run_dir) / 'frames'
-    entries = read_manifest(frames_dir)
+    headers, entries = read_sequence(frames_dir)
     if max_frames:
         entries = entries[:max_frames]
     by_stamp = {f['stamp_ns']: f for f in gt.frames if 'T_world_subject' in f}
@@ -144,19 +158,25 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
         dropped = gt.arrays(index, suffix='/dropped')
         sensors = [(c.depth, gt.T_world_depth(c.name), c.color, gt.T_world_color(c.name),
                     dropout_rate(dropped[f'{c.name}/dropped'])) for c in rig.cameras]
-        row = score_frame(read_ply(frames_dir / entry['ply']), truth, sensors, tof)
+        fused = read_ply(frames_dir / entry['ply'])
+        T = T_world_frame(headers, entry['index'])       # the sequence's frame (studio) -> world
+        fused.vertices = transform_points(T, fused.vertices).astype(np.float32)
+        row = score_frame(fused, truth, sensors, tof, T_studio_world=np.asarray(gt.doc['T_studio_world'], float))
         per_frame.append({'index': entry['index'], 'stamp_ns': entry['stamp_ns'], **row})
     acc = [r['accuracy_mm'] for r in per_frame if r['accuracy_mm'] is not None]
+    feet = [r['completeness_feet'] for r in per_frame if r.get('completeness_feet') is not None]
     return {'accuracy_mm': float(np.mean(acc)) if acc else None,
             'completeness': float(np.mean([r['completeness'] for r in per_frame])),
+            'completeness_feet': float(np.mean(feet)) if feet else None, 'feet_m': FEET_M,
             'completeness_all': float(np.mean([r['completeness_all'] for r in per_frame])),
             'completeness_threshold_mm': COMPLETENESS_MM, 'frames': len(per_frame), 'per_frame': per_frame}
 
 
 def raw_fusion(bag: str | Path, stamp_ns: int, T_world_color: dict[str, np.ndarray], cfg: FusionConfig,
-               tolerance_ns: int = 20_000_000) -> FusedModel:
+               on_floor: bool = False, tolerance_ns: int = 20_000_000) -> FusedModel:
     """The frame set of ``bag`` at ``stamp_ns`` fused as it left the cameras (the "before" of
-    paper 000, Figs. 16 and 18): raw depth registered to colour with nothing removed, raw colour."""
+    paper 000, Figs. 16 and 18): raw depth registered to colour with nothing removed, raw colour.
+    ``T_world_color`` places the cameras in the output frame (``on_floor``: the studio frame)."""
     from volcap_core.bag_io import BagReader
     from volcap_core.frames import frame_sets, read_rig
     from volcap_core.topics import CAPTURE
@@ -175,7 +195,7 @@ def raw_fusion(bag: str | Path, stamp_ns: int, T_world_color: dict[str, np.ndarr
                                            (c.width, c.height)).register(f.depth).depth
             depth_mm = depth_to_millimetres(registered)
             views.append(CameraView(name, depth_mm, c, f.color, c, T_world_color[name]))
-        return TsdfFusion(cfg).fuse(views)
+        return TsdfFusion(cfg).fuse(views, on_floor)
     raise ValueError(f'{bag} has no capture frame set at {stamp_ns} ns')
 
 

@@ -1,12 +1,17 @@
-"""The volumetric sequence on disk: one PLY and one glTF binary per time step, and
-``sequence.jsonl`` listing them with their capture stamps, one JSON line per time step,
-appended once the frame's files are in place (so a long take costs the same per frame; a
-reader skips a last line still being written).
+"""The volumetric sequence on disk, a stream a player can follow while it grows:
 
-The GLB holds positions, 8-bit vertex colours (``COLOR_0``) and triangle indices, with an unlit
-material (``KHR_materials_unlit``) so web players (three.js, Babylon.js, model-viewer) show the
-captured colour instead of relighting it. Every file is written atomically: a player polling
-the folder never reads half a frame.
+- ``NNNNNN.glb`` per time step (``glb.encode``: +Y up, linear colour, the capture stamp in the
+  scene extras; meshopt-compressed within a triangle budget by default, ``raw`` on request) and
+  ``NNNNNN.ply`` (the full mesh, studio frame +Z up, 8-bit sRGB vertex colour as PLY viewers
+  expect);
+- ``sequence.jsonl``: a header line (the frame the meshes are in and where it lies in the
+  calibration's world, the encoding), then one line per time step (index, capture stamp,
+  cameras, files, bytes, triangles), appended once the frame's files are in place, so a long
+  take costs the same per frame and a reader skips a last line still being written;
+- ``manifest.json``: the summary a player starts from (frame rate measured from the stamps,
+  frame count, duration, encoding), rewritten atomically every second of capture and at the end.
+
+Every file is written atomically: a player polling the folder never reads half a frame.
 """
 from __future__ import annotations
 
@@ -17,69 +22,16 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-import pygltflib
 
-from volcap_core.files import atomic_write
+from volcap_core.files import atomic_write, write_json
+from volcap_core.poses import matrix_from_list, matrix_to_list
 
+from .glb import EncodeConfig, EncodedFrame, encode
 from .tsdf import FusedModel, colors_to_uint8
 
 MANIFEST = 'sequence.jsonl'
-
-
-def glb_bytes(model: FusedModel) -> bytes:
-    """The model as a glTF 2.0 binary."""
-    vertices = np.ascontiguousarray(model.vertices, np.float32)
-    colors = np.ascontiguousarray(np.concatenate([model.colors, np.full((len(model.colors), 1), 255, np.uint8)],
-                                                 axis=1))   # VEC4: glTF needs 4-byte aligned attributes
-    indices = np.ascontiguousarray(model.triangles, np.uint32)
-    blobs = [vertices.tobytes(), colors.tobytes(), indices.tobytes()]
-    offsets = np.cumsum([0] + [len(b) for b in blobs[:-1]]).tolist()
-    lo = vertices.min(axis=0).tolist() if len(vertices) else [0.0] * 3
-    hi = vertices.max(axis=0).tolist() if len(vertices) else [0.0] * 3
-    gltf = pygltflib.GLTF2(
-        asset=pygltflib.Asset(generator='volcap', version='2.0'),
-        extensionsUsed=['KHR_materials_unlit'],
-        scene=0, scenes=[pygltflib.Scene(nodes=[0])], nodes=[pygltflib.Node(mesh=0)],
-        materials=[pygltflib.Material(pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-            baseColorFactor=[1, 1, 1, 1], metallicFactor=0.0, roughnessFactor=1.0),
-            extensions={'KHR_materials_unlit': {}}, doubleSided=True)],
-        meshes=[pygltflib.Mesh(primitives=[pygltflib.Primitive(
-            attributes=pygltflib.Attributes(POSITION=0, COLOR_0=1), indices=2, material=0,
-            mode=pygltflib.TRIANGLES)])],
-        accessors=[
-            pygltflib.Accessor(bufferView=0, componentType=pygltflib.FLOAT, count=len(vertices), type=pygltflib.VEC3,
-                               min=lo, max=hi),
-            pygltflib.Accessor(bufferView=1, componentType=pygltflib.UNSIGNED_BYTE, normalized=True,
-                               count=len(colors), type=pygltflib.VEC4),
-            pygltflib.Accessor(bufferView=2, componentType=pygltflib.UNSIGNED_INT, count=indices.size,
-                               type=pygltflib.SCALAR)],
-        bufferViews=[
-            pygltflib.BufferView(buffer=0, byteOffset=offsets[0], byteLength=len(blobs[0]),
-                                 target=pygltflib.ARRAY_BUFFER, byteStride=12),
-            pygltflib.BufferView(buffer=0, byteOffset=offsets[1], byteLength=len(blobs[1]),
-                                 target=pygltflib.ARRAY_BUFFER, byteStride=4),
-            pygltflib.BufferView(buffer=0, byteOffset=offsets[2], byteLength=len(blobs[2]),
-                                 target=pygltflib.ELEMENT_ARRAY_BUFFER)],
-        buffers=[pygltflib.Buffer(byteLength=sum(len(b) for b in blobs))])
-    gltf.set_binary_blob(b''.join(blobs))
-    return b''.join(gltf.save_to_bytes())
-
-
-def read_glb(path: str | Path) -> FusedModel:
-    """Vertices, colours and triangles of a GLB this module wrote."""
-    gltf = pygltflib.GLTF2.load_binary(str(path))
-    blob = gltf.binary_blob()
-    prim = gltf.meshes[0].primitives[0]
-
-    def array(index, dtype, width):
-        acc = gltf.accessors[index]
-        view = gltf.bufferViews[acc.bufferView]
-        data = np.frombuffer(blob, dtype, acc.count * width, view.byteOffset + (acc.byteOffset or 0))
-        return data.reshape(acc.count, width) if width > 1 else data
-    vertices = array(prim.attributes.POSITION, np.float32, 3)
-    colors = array(prim.attributes.COLOR_0, np.uint8, 4)[:, :3]
-    triangles = array(prim.indices, np.uint32, 1).reshape(-1, 3).astype(np.int32)
-    return FusedModel(vertices.copy(), colors.copy(), triangles)
+SUMMARY = 'manifest.json'
+SEQUENCE_VERSION = 2
 
 
 def write_ply(path: str | Path, model: FusedModel) -> Path:
@@ -109,21 +61,47 @@ def read_ply(path: str | Path) -> FusedModel:
 
 
 class SequenceWriter:
-    """Writes ``NNNNNN.ply`` and ``NNNNNN.glb`` per time step into a folder, and a line per
-    time step (stamp, cameras, files) to ``sequence.jsonl``."""
+    """Writes ``NNNNNN.glb`` and ``NNNNNN.ply`` per time step into a folder, with ``sequence.jsonl``
+    and ``manifest.json``. ``frame`` / ``T_world_frame``: the frame the models are in (the studio
+    frame) and its pose in the calibration's world frame."""
 
-    def __init__(self, folder: str | Path, formats: tuple[str, ...] = ('ply', 'glb')):
+    def __init__(self, folder: str | Path, formats: tuple[str, ...] = ('ply', 'glb'),
+                 encoding: EncodeConfig | None = None):
         unknown = set(formats) - {'ply', 'glb'}
         if unknown or not formats:
             raise ValueError(f'sequence formats must be ply and/or glb, got {formats}')
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.formats = formats
+        self.encoding = encoding or EncodeConfig()
+        self.encoding.validate()
         if (self.folder / MANIFEST).exists():
             raise FileExistsError(f'{self.folder} already holds a sequence')
         self.written = 0
+        self.frame: tuple[str, np.ndarray] | None = None
+        self.stamps: list[int] = []
+        self.bytes = 0
 
-    def write(self, model: FusedModel, stamp_ns: int, missing: list[str] | None = None) -> dict:
+    def _append(self, doc: dict) -> None:
+        with open(self.folder / MANIFEST, 'a') as f:
+            f.write(json.dumps(doc) + '\n')
+
+    def _header(self, frame: str, T_world_frame: np.ndarray) -> None:
+        self._append({'volcap_sequence': SEQUENCE_VERSION, 'frame': frame,
+                      'T_world_frame': matrix_to_list(T_world_frame), 'from_index': self.written,
+                      'glb': {'encoding': self.encoding.encoding, 'up': '+Y', 'front': '+Z', 'units': 'm',
+                              'color': 'linear', 'max_triangles': self.encoding.max_triangles,
+                              'position_step_m': self.encoding.position_step},
+                      'ply': {'up': '+Z', 'color': 'sRGB'}})
+        self.frame = (frame, np.asarray(T_world_frame, float))
+
+    def write(self, model: FusedModel, stamp_ns: int, missing: list[str] | None = None,
+              frame: str = 'volcap_studio', T_world_frame: np.ndarray | None = None,
+              encoded: EncodedFrame | None = None) -> dict:
+        """Writes one time step; ``encoded``: its GLB when the caller already made it."""
+        T = np.eye(4) if T_world_frame is None else np.asarray(T_world_frame, float)
+        if self.frame is None or self.frame[0] != frame or not np.allclose(self.frame[1], T):
+            self._header(frame, T)       # a new calibration mid-take starts a new header line
         index = self.written
         entry = {'index': index, 'stamp_ns': int(stamp_ns), 'cameras': list(model.cameras),
                  'missing': list(missing or []), 'vertices': int(len(model.vertices)),
@@ -131,22 +109,71 @@ class SequenceWriter:
         if 'ply' in self.formats:
             entry['ply'] = write_ply(self.folder / f'{index:06d}.ply', model).name
         if 'glb' in self.formats:
-            data = glb_bytes(model)
-            entry['glb'] = atomic_write(self.folder / f'{index:06d}.glb', lambda f: f.write(data)).name
-        with open(self.folder / MANIFEST, 'a') as f:
-            f.write(json.dumps(entry) + '\n')
+            encoded = encoded or encode(model, self.encoding, stamp_ns, index, frame)
+            entry['glb'] = atomic_write(self.folder / f'{index:06d}.glb', lambda f: f.write(encoded.data)).name
+            entry.update(glb_bytes=len(encoded.data), glb_triangles=encoded.triangles,
+                         encode_ms=round(sum(encoded.timings_ms.values()), 2))
+            self.bytes += len(encoded.data)
+        self._append(entry)
         self.written += 1
+        self.stamps.append(int(stamp_ns))
+        rate = frame_rate(self.stamps)
+        if self.written == 1 or self.written % max(1, round(rate or 1)) == 0:
+            self.write_summary()
         return entry
 
+    def write_summary(self) -> Path:
+        """``manifest.json`` as the sequence stands."""
+        rate = frame_rate(self.stamps)
+        duration = (self.stamps[-1] - self.stamps[0]) / 1e9 if len(self.stamps) > 1 else 0.0
+        return write_json(self.folder / SUMMARY, {
+            'volcap_sequence': SEQUENCE_VERSION, 'frames': self.written, 'frame_rate': rate,
+            'first_stamp_ns': str(self.stamps[0]) if self.stamps else None,
+            'duration_s': round(duration, 3), 'frame': self.frame[0] if self.frame else None,
+            'index': MANIFEST, 'glb_encoding': self.encoding.encoding if 'glb' in self.formats else None,
+            'mean_glb_bytes': round(self.bytes / self.written) if self.written and 'glb' in self.formats else None,
+            'mbit_per_s': round(self.bytes * 8 / self.written * rate / 1e6, 2) if self.written and rate and
+            'glb' in self.formats else None})
 
-def read_manifest(folder: str | Path) -> list[dict]:
+    def close(self) -> None:
+        if self.written:
+            self.write_summary()
+
+
+def frame_rate(stamps: list[int]) -> float | None:
+    """Frames per second from the capture stamps (the median step: dropped sets do not lower it)."""
+    if len(stamps) < 2:
+        return None
+    steps = np.diff(np.asarray(stamps, np.int64))
+    steps = steps[steps > 0]
+    return round(1e9 / float(np.median(steps)), 3) if len(steps) else None
+
+
+def read_sequence(folder: str | Path) -> tuple[list[dict], list[dict]]:
+    """(header lines, frame lines) of ``sequence.jsonl``."""
     path = Path(folder) / MANIFEST
     if not path.exists():
         raise FileNotFoundError(f'{folder} holds no volumetric sequence ({MANIFEST} missing)')
-    frames = []
+    headers, frames = [], []
     for line in path.read_text().splitlines():
         try:
-            frames.append(json.loads(line))
+            doc = json.loads(line)
         except json.JSONDecodeError:
             break          # the line a writer is still appending
-    return frames
+        (frames if 'index' in doc else headers).append(doc)
+    return headers, frames
+
+
+def read_manifest(folder: str | Path) -> list[dict]:
+    """The frame lines of ``sequence.jsonl``."""
+    return read_sequence(folder)[1]
+
+
+def T_world_frame(headers: list[dict], index: int) -> np.ndarray:
+    """The pose in the world frame of the frame that frame ``index`` is in (identity for a
+    sequence written before the studio frame)."""
+    current = np.eye(4)
+    for h in headers:
+        if h.get('from_index', 0) <= index and 'T_world_frame' in h:
+            current = matrix_from_list(h['T_world_frame'])
+    return current

@@ -5,8 +5,9 @@ extracted by marching cubes.
 Open3D integrates with a pinhole model. The cameras here (Azure Kinect class) have lens
 distortion, and the cleaned depth is registered to the distorted colour image, so each
 camera's depth and colour are first remapped onto undistorted pinhole grids (``Rectifier``).
-Only blocks inside the capture box are allocated, and the mesh is cut to the box, so walls and
-floor a camera sees never reach the output.
+Only blocks inside the capture box are allocated, and the mesh is cut to the box, so walls a
+camera sees never reach the output. The graph fuses in the studio frame, where the box stands
+on the floor (the filter removes the floor itself with the clean plate).
 """
 from __future__ import annotations
 
@@ -20,31 +21,33 @@ import open3d as o3d
 import open3d.core as o3c
 
 from volcap_core.camera import CameraModel
-from volcap_core.poses import invert
+from volcap_core.poses import convergence_point, invert
 from volcap_core.settings import setting, validate
 
 from . import VOXEL_SIZE
 
 DEPTH_SCALE = 10_000.0   # depth units per metre handed to Open3D (0.1 mm; 6.5 m at most)
+FLOOR_SLACK = 0.02       # the capture box reaches this far below a studio floor (m)
 
 
 @dataclass
 class FusionConfig:
     voxel_size: float = setting(VOXEL_SIZE, 'TSDF voxel edge (m)', 0.0005, 0.1, read_only=True)
     trunc_voxels: float = setting(4.0, 'SDF truncation in voxels', 1.0, 32.0, read_only=True)
-    weight_threshold: float = setting(1.0, 'a voxel is meshed when more cameras than this saw it (capped below the '
+    weight_threshold: float = setting(0.5, 'a voxel is meshed when more cameras than this saw it (0.5: one is enough; capped below the '
                                       'number of cameras fused, so one camera still gives a mesh)', 0.0, 100.0,
                                       read_only=True)
     block_resolution: int = setting(8, 'voxels per block edge', choices=(4, 8, 16), read_only=True)
     block_count: int = setting(40_000, 'initial voxel block capacity (it grows when needed)', 1, 10_000_000,
                                read_only=True)
     depth_max: float = setting(3.0, 'depth beyond this is not fused (m)', 0.1, 6.5, read_only=True)
-    # Capture box, axis-aligned in the world frame: edge lengths and centre (None: the point the
-    # cameras' optical axes pass closest to, which is where a rig is aimed).
+    # Capture box, axis-aligned in the output frame (the studio frame): edge lengths and centre
+    # (None: on the floor around the studio origin, which lies below where the rig is aimed).
     box_size: tuple[float, float, float] = setting((2.6, 2.6, 2.6), 'capture box edge lengths (m)', 0.01, 100.0,
                                                    read_only=True)
     box_center: tuple[float, float, float] | None = setting(
-        None, 'capture box centre x, y, z in the world frame (m); [0.0]: where the cameras point', none_as=[0.0],
+        None, 'capture box centre x, y, z in the output frame (m); [0.0]: standing on the studio floor around '
+        'its origin, or where the cameras point when the calibration has no floor', none_as=[0.0],
         read_only=True)
     depth_upsample: int = setting(1, 'depth resampled this many times finer before integration', 1, 4,
                                   read_only=True)
@@ -99,7 +102,8 @@ class CameraView:
 
 @dataclass
 class FusedModel:
-    """The fused surface of one time step, in the world frame."""
+    """The fused surface of one time step, in the frame of the fused views' poses (the studio
+    frame in the graph)."""
     vertices: np.ndarray           # (N, 3) float32
     colors: np.ndarray             # (N, 3) uint8
     triangles: np.ndarray          # (M, 3) int32
@@ -114,20 +118,6 @@ class FusedModel:
                                          o3d.utility.Vector3iVector(self.triangles))
         mesh.vertex_colors = o3d.utility.Vector3dVector(self.colors.astype(np.float64) / 255.0)
         return mesh
-
-    def decimated(self, max_triangles: int, cell: float) -> 'FusedModel':
-        """At most ``max_triangles``: vertices merged on a grid of ``cell`` metres, doubled until
-        it fits (Open3D vertex clustering, fast enough to run per frame)."""
-        if len(self.triangles) <= max_triangles:
-            return self
-        mesh = self.legacy_mesh()
-        while True:
-            simple = mesh.simplify_vertex_clustering(cell, o3d.geometry.SimplificationContraction.Average)
-            if len(simple.triangles) <= max_triangles:
-                break
-            cell *= 2
-        return FusedModel(np.asarray(simple.vertices, np.float32), colors_to_uint8(np.asarray(simple.vertex_colors)),
-                          np.asarray(simple.triangles, np.int32), self.cameras, self.timings_ms)
 
 
 def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
@@ -334,10 +324,15 @@ class TsdfFusion:
             attr_channels=((1), (1), (3)), voxel_size=cfg.voxel_size, block_resolution=cfg.block_resolution,
             block_count=cfg.block_count, device=self.device)
 
-    def capture_box(self, views: list[CameraView]) -> tuple[np.ndarray, np.ndarray]:
-        """(min, max) corners of the capture box in the world frame."""
+    def capture_box(self, views: list[CameraView], on_floor: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners of the capture box in the frame of the views' poses. ``on_floor``:
+        that frame is the studio frame (+Z up, z = 0 on the floor), and the box stands on the
+        floor (``FLOOR_SLACK`` below it, so soles resting on it are kept) around the z axis."""
+        half = np.asarray(self.cfg.box_size, float) / 2
         if self.cfg.box_center is not None:
             centre = np.asarray(self.cfg.box_center, float)
+        elif on_floor:
+            centre = np.array([0.0, 0.0, half[2] - FLOOR_SLACK])
         else:
             try:
                 centre = convergence_point([v.T_world_camera for v in views])
@@ -345,7 +340,6 @@ class TsdfFusion:
                 T, depth = views[0].T_world_camera, views[0].depth_mm
                 ahead = float(np.median(depth[depth > 0])) / 1000 if np.any(depth > 0) else 1.5
                 centre = T[:3, 3] + T[:3, 2] * ahead
-        half = np.asarray(self.cfg.box_size, float) / 2
         return centre - half, centre + half
 
     def integrate(self, volume: o3d.t.geometry.VoxelBlockGrid, view: CameraView, box: tuple[np.ndarray, np.ndarray]
@@ -391,12 +385,13 @@ class TsdfFusion:
         triangles = mesh.triangle.indices.numpy().astype(np.int32)
         return crop_to_box(vertices, colors_to_uint8(colors), triangles, *box)
 
-    def fuse(self, views: list[CameraView]) -> FusedModel:
-        """One time step: a fresh volume, every view integrated, the mesh extracted."""
+    def fuse(self, views: list[CameraView], on_floor: bool = False) -> FusedModel:
+        """One time step: a fresh volume, every view integrated, the mesh extracted (in the frame
+        of the views' poses; ``on_floor``: see ``capture_box``)."""
         if not views:
             raise ValueError('no camera to fuse')
         t0 = time.perf_counter()
-        box = self.capture_box(views)
+        box = self.capture_box(views, on_floor)
         volume = self.empty_volume()
         seen = sum(self.integrate(volume, view, box) > 0 for view in views)
         t1 = time.perf_counter()
@@ -414,20 +409,6 @@ def effective_weight_threshold(weight_threshold: float, cameras: int) -> float:
     """Open3D meshes voxels whose weight (one per camera that saw them) is above the threshold:
     capped at one below the cameras fused, so fewer cameras than the threshold still mesh."""
     return max(0.0, min(weight_threshold, cameras - 1.0))
-
-
-def convergence_point(poses: list[np.ndarray]) -> np.ndarray:
-    """The point closest (least squares) to every camera's optical axis, in the world frame."""
-    A, b = np.zeros((3, 3)), np.zeros(3)
-    for T in poses:
-        T = np.asarray(T, float)
-        axis = T[:3, 2] / np.linalg.norm(T[:3, 2])
-        P = np.eye(3) - np.outer(axis, axis)
-        A += P
-        b += P @ T[:3, 3]
-    if len(poses) < 2 or np.linalg.cond(A) > 1e6:
-        raise ValueError('cameras aimed from one direction have no convergence point')
-    return np.linalg.solve(A, b)
 
 
 def colors_to_uint8(colors: np.ndarray) -> np.ndarray:

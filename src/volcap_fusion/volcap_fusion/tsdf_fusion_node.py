@@ -13,12 +13,16 @@ cameras that arrived, and the missing ones are reported on ``volcap/diagnostics`
 Fusion runs on a worker thread fed by a bounded drop-oldest queue (one set waits by default),
 so a slow volume never stalls the subscriptions and no backlog builds: when fusion falls
 behind, the oldest waiting frame sets are dropped (and counted). In a live graph only the frame
-sets admitted on ``/volcap/admission`` are gathered (``volcap_core.admission``). Publishes
-``/volcap/points`` (PointCloud2, world frame) and ``/volcap/mesh`` (Marker TRIANGLE_LIST with
-vertex colours; decimated above ``marker_max_triangles``), each only while someone subscribes;
-diagnostics carry the latency from capture stamp to publication (p50/p95 over the last 10 s,
-when the stamps are the rig's clock). With
-``output_dir`` writes the volumetric sequence (PLY + GLB per time step, ``sequence.jsonl``).
+sets admitted on ``/volcap/admission`` are gathered (``volcap_core.admission``).
+
+Output is in the calibration's studio frame (``volcap_studio``: +Z up, origin on the floor),
+each only while someone subscribes: ``/volcap/points`` (PointCloud2), ``/volcap/mesh`` (Marker
+TRIANGLE_LIST with vertex colours, simplified above ``marker_max_triangles``) and
+``/volcap/mesh/glb`` (Marker MESH_RESOURCE whose ``mesh_file`` holds the frame's GLB: the
+triangle budget and encoding of the ``encoding`` parameters, meshopt by default). Diagnostics
+carry the latency from capture stamp to publication (p50/p95 over the last 10 s, when the
+stamps are the rig's clock), the GLB's size, bitrate and encode time. With ``output_dir``
+writes the volumetric sequence (``volcap_fusion.sequence``).
 While a session phase is announced on ``/volcap/phase``, only the ``phases`` listed are fused.
 """
 from __future__ import annotations
@@ -41,6 +45,7 @@ from volcap_core.conversions import (
     camera_info_to_model,
     color_to_rgb,
     depth_to_metres,
+    glb_marker,
     image_to_numpy,
     mesh_to_marker_cdr,
     points_to_pointcloud2,
@@ -51,7 +56,8 @@ from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_m
 from volcap_core.worker import DropOldestWorker
 
 from .frame_sets import FusionNodeConfig, frame_set_views, fused_cameras, fused_phase
-from .sequence import SequenceWriter
+from .glb import EncodeConfig, encode, simplify
+from .sequence import SequenceWriter, frame_rate
 from .tsdf import CameraView, FusionConfig, TsdfFusion, pick_device
 
 # Latency percentiles cover the frame sets published in the last this many seconds.
@@ -65,10 +71,13 @@ class TsdfFusionNode(Node):
         self.node_cfg = declare_config(self, FusionNodeConfig, self._on_node_config)
         cfg = declare_config(self, FusionConfig)
         self.fusion = TsdfFusion(cfg)   # validates: bad values stop the node with the reason
+        self.encoding = declare_config(self, EncodeConfig)
+        self.encoding.validate()
         self.wanted = [c for c in self.node_cfg.cameras if c]
         output_dir = self.node_cfg.output_dir
         formats = tuple(f for f in self.node_cfg.output_formats if f)
-        self.writer = SequenceWriter(output_dir, formats) if output_dir else None
+        self.writer = SequenceWriter(output_dir, formats, self.encoding) if output_dir else None
+        self.glb_stamps: deque[int] = deque(maxlen=64)
 
         self.diagnostics = Diagnostics(self, 'tsdf fusion')
         self.calibration: Calibration | None = None
@@ -90,6 +99,7 @@ class TsdfFusionNode(Node):
         self.admission = AdmissionListener(self, self.diagnostics)
         self.pub_points = self.create_publisher(PointCloud2, '/' + topics.FUSED_POINTS, qos.DRIVER)
         self.pub_mesh = self.create_publisher(Marker, '/' + topics.MESH, qos.DRIVER)
+        self.pub_glb = self.create_publisher(Marker, '/' + topics.MESH_GLB, qos.DRIVER)
         self.create_timer(0.05, self._poll)
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'tsdf_fusion started: {cfg.voxel_size * 1000:.1f} mm voxels on '
@@ -171,9 +181,12 @@ class TsdfFusionNode(Node):
             self.work_s += time.process_time() - cpu0
 
     def _fuse_set(self, fs: FrameSet, calibration: Calibration, cameras: list[str], t0: float) -> None:
+        frame, T_frame_world = calibration.output_frame()
+        studio = calibration.studio
         pairs = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras}
         parts = {c: p for c, p in pairs.items() if None not in p}
-        plan = frame_set_views(fs.stamp_ns, cameras, parts, lambda c, p: self._view(c, *p, calibration),
+        plan = frame_set_views(fs.stamp_ns, cameras, parts,
+                               lambda c, p: self._view(c, *p, T_frame_world @ calibration.T_world_color(c)),
                                self.node_cfg.min_cameras)
         if plan.problems:
             self.diagnostics.report('warn', 'cameras left out of frame set: '
@@ -184,33 +197,43 @@ class TsdfFusionNode(Node):
             return
         if plan.missing:
             self.diagnostics.report('warn', f'frame set {fs.stamp_ns} fused without {", ".join(plan.missing)}')
-        model = self.fusion.fuse(plan.views)
+        model = self.fusion.fuse(plan.views, on_floor=studio is not None and studio.details.get('source') == 'floor')
         if len(model.vertices) == 0:
             self.stats['empty'] += 1
             self.last = {'cameras': len(plan.views), 'vertices': 0}
             return
-        frame = calibration.world_frame
         if self.pub_points.get_subscription_count():
             self.pub_points.publish(points_to_pointcloud2(model.vertices, model.colors, fs.stamp_ns, frame))
         if self.pub_mesh.get_subscription_count():
-            marker = model.decimated(self.node_cfg.marker_max_triangles, 2 * self.fusion.cfg.voxel_size)
+            marker = simplify(model, self.node_cfg.marker_max_triangles)
             self.pub_mesh.publish(mesh_to_marker_cdr(marker.vertices, marker.colors, marker.triangles, fs.stamp_ns,
                                                      frame))
+        stream = {}
+        encoded = None
+        if self.pub_glb.get_subscription_count() or (self.writer is not None and 'glb' in self.writer.formats):
+            encoded = encode(model, self.encoding, fs.stamp_ns, self.writer.written if self.writer else None, frame)
+            self.glb_stamps.append(fs.stamp_ns)
+            rate = frame_rate(list(self.glb_stamps)) or 0.0
+            stream = {'glb_bytes': len(encoded.data), 'glb_triangles': encoded.triangles,
+                      'glb_mbit_per_s': round(len(encoded.data) * 8 * rate / 1e6, 2),
+                      'encode_ms': round(sum(encoded.timings_ms.values()), 1)}
+            if self.pub_glb.get_subscription_count():
+                self.pub_glb.publish(glb_marker(encoded.data, fs.stamp_ns, frame, f'{fs.stamp_ns}.glb'))
         latency_ms = (time.time_ns() - fs.stamp_ns) / 1e6
         if 0 <= latency_ms < 60_000:      # stamps on the rig's clock (live), not a replayed bag's
             self.latency_ms.append((time.monotonic(), latency_ms))
         if self.writer is not None:
-            self.writer.write(model, fs.stamp_ns, plan.missing)
+            self.writer.write(model, fs.stamp_ns, plan.missing, frame, np.linalg.inv(T_frame_world), encoded)
         self.stats['fused'] += 1
         self.stats['fused_complete'] += not plan.missing
         self.last = {'fusion_ms': round(sum(model.timings_ms.values()), 1),
                      'total_ms': round((time.perf_counter() - t0) * 1000, 1), 'cameras': len(plan.views),
-                     'vertices': len(model.vertices), 'triangles': len(model.triangles)}
+                     'vertices': len(model.vertices), 'triangles': len(model.triangles), **stream}
 
     def _on_fusion_error(self, item, e: Exception) -> None:
         self.diagnostics.report('error', f'frame set {item[0].stamp_ns} not fused: {type(e).__name__}: {e}')
 
-    def _view(self, cam: str, depth_msg: Image, color_msg: Image, calibration: Calibration) -> CameraView:
+    def _view(self, cam: str, depth_msg: Image, color_msg: Image, T_frame_color: np.ndarray) -> CameraView:
         infos = self.infos.get((cam, 'depth')), self.infos.get((cam, 'color'))
         if None in infos:
             raise ValueError('no camera_info yet')
@@ -219,7 +242,7 @@ class TsdfFusionNode(Node):
         else:   # 32FC1 metres (NaN = no depth), or a clear error for anything else
             depth_mm = depth_to_millimetres(depth_to_metres(depth_msg))
         return CameraView(cam, depth_mm, camera_info_to_model(infos[0]), color_to_rgb(color_msg),
-                          camera_info_to_model(infos[1]), calibration.T_world_color(cam))
+                          camera_info_to_model(infos[1]), T_frame_color)
 
     def _report(self) -> None:
         if self.calibration is None:
@@ -241,6 +264,8 @@ class TsdfFusionNode(Node):
 
     def destroy_node(self):
         self.worker.stop()
+        if self.writer is not None:
+            self.writer.close()
         return super().destroy_node()
 
 
