@@ -135,6 +135,8 @@ def run_view(cfg: ViewConfig, ready=None) -> None:
     web = web_root()
     sequence = None
     if not cfg.live:
+        if cfg.folder is not None and (Path(cfg.folder) / 'frames' / 'sequence.jsonl').is_file():
+            cfg.folder = Path(cfg.folder) / 'frames'      # the --out folder of volcap run
         if cfg.folder is None or not (Path(cfg.folder) / 'sequence.jsonl').is_file():
             raise FileNotFoundError(f'{cfg.folder} holds no volumetric sequence (sequence.jsonl missing); '
                                     'give the frames folder of `volcap run --out DIR` (DIR/frames)')

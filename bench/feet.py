@@ -1,0 +1,121 @@
+"""Where the feet go: the lowest part of a synthetic subject followed through the depth sensor,
+the depth filter's stages and the fusion, per height band, on one capture frame set.
+
+For every camera, the ground truth's clean depth of the subject gives the surface points each
+depth sensor faces; those in a height band (studio frame, above the subject's lowest point) are
+followed through:
+
+- the sensor: did it return depth there, and within 1 cm of the truth;
+- the flying-pixel filter: is the return kept;
+- the foreground mask and the cleaned output: is there depth within 3 cm of the truth in the
+  cleaned image (registered to colour);
+
+then the whole set is fused (the graph's defaults, and ``--weight-threshold`` values to compare)
+and the share of the observable surface within 5 mm is given per band, as `volcap eval fusion`
+scores it.
+
+    python bench/feet.py BAG [--bands 0,0.06,0.09,0.15,0.5] [--weight-threshold 0.5 1.0]
+"""
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from volcap_core.camera import depth_to_millimetres
+from volcap_core.poses import invert, transform_points
+from volcap_eval.fusion import dropout_rate, observable, surface_samples
+from volcap_eval.replay import cleaned_frame_sets
+from volcap_filter.pipeline import DepthFilterConfig
+from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion, raycasting_scene
+from volcap_studio.session import GroundTruth
+
+
+def band_of(heights: np.ndarray, bands: list[float]) -> np.ndarray:
+    return np.digitize(heights, bands) - 1      # -1 below the first edge, len(bands)-1 above the last
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('bag')
+    ap.add_argument('--bands', default='0,0.06,0.09,0.15,0.5,2.0', help='height band edges (m)')
+    ap.add_argument('--weight-threshold', type=float, nargs='+', default=[0.5, 1.0])
+    ap.add_argument('--json', default='bench_out/feet.json')
+    args = ap.parse_args()
+    bands = [float(b) for b in args.bands.split(',')]
+    names = [f'{bands[k]:.2f}-{bands[k + 1]:.2f} m' for k in range(len(bands) - 1)]
+    gt = GroundTruth(args.bag)
+    T_sw = np.asarray(gt.doc['T_studio_world'], float)
+    captures = gt.frames_in('capture')
+    fs, cleaned = next(cleaned_frame_sets(args.bag, {'volcap': DepthFilterConfig()}, limit=1))
+    frame = next(f for f in captures if abs(f['stamp_ns'] - fs.stamp_ns) < 20_000_000)
+    arrays = gt.arrays(frame['index'])
+    truth = gt.subject_mesh(frame['index'])
+    gt_v, gt_t = np.asarray(truth.vertices), np.asarray(truth.triangles)
+    floor = transform_points(T_sw, gt_v)[:, 2].min()
+
+    stages = np.zeros((len(names), 5), np.int64)   # faced, returned, accurate, kept by the filter, in the output
+    for cam, c in cleaned['volcap'].items():
+        depth_model = c.frame.depth_model
+        clean = arrays[f'{cam}/depth_clean']
+        v, u = np.nonzero(arrays[f'{cam}/depth_subject'] & (clean > 0))
+        points_world = transform_points(gt.T_world_depth(cam), depth_model.pixel_rays()[v, u] * clean[v, u, None])
+        band = band_of(transform_points(T_sw, points_world)[:, 2] - floor, bands)
+        raw = c.frame.depth[v, u]
+        returned = raw > 0
+        accurate = returned & (np.abs(raw - clean[v, u]) < 0.01)
+        kept = accurate & ~c.result.flying[v, u]
+        out_model = c.cleaner.output_model
+        local = transform_points(invert(gt.T_world_color(cam)), points_world)
+        px = np.round(out_model.project(local)).astype(int)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < out_model.width) & (px[:, 1] >= 0) & (px[:, 1] < out_model.height)
+        output = np.zeros(len(v), bool)
+        output[inside] = np.abs(c.result.depth[px[inside, 1], px[inside, 0]] - local[inside, 2]) < 0.03
+        for k in range(len(names)):
+            sel = band == k
+            stages[k] += [sel.sum(), (sel & returned).sum(), (sel & accurate).sum(), (sel & kept).sum(),
+                          (sel & accurate & output).sum()]
+
+    dropped = gt.arrays(frame['index'], suffix='/dropped')
+    sensors = [(rc.depth, gt.T_world_depth(rc.name), rc.color, gt.T_world_color(rc.name),
+                dropout_rate(dropped[f'{rc.name}/dropped'])) for rc in gt.rig.cameras]
+    tof = gt.doc['config']['tof']
+    samples, normals = surface_samples(gt_v, gt_t, 200_000)
+    seen = observable(samples, normals, raycasting_scene(gt_v, gt_t), sensors, tof['min_range'], tof['max_range'],
+                      tof['grazing_cos'])
+    sample_band = band_of(transform_points(T_sw, samples)[:, 2] - floor, bands)
+    views = [CameraView(cam, depth_to_millimetres(c.result.depth), c.cleaner.output_model, c.frame.color,
+                        c.frame.color_model, T_sw @ gt.T_world_color(cam)) for cam, c in cleaned['volcap'].items()]
+    fused = {}
+    for threshold in args.weight_threshold:
+        model = TsdfFusion(FusionConfig(weight_threshold=threshold)).fuse(views, on_floor=True)
+        vertices = transform_points(invert(T_sw), model.vertices).astype(np.float32)
+        distance = raycasting_scene(vertices, model.triangles).compute_distance(
+            o3d.core.Tensor(samples.astype(np.float32))).numpy()
+        fused[threshold] = [float((distance[seen & (sample_band == k)] <= 0.005).mean())
+                            if (seen & (sample_band == k)).any() else None for k in range(len(names))]
+
+    print(f'{Path(args.bag).name}, capture frame set {frame["index"]}; heights above the subject\'s lowest point')
+    header = 'band          faced  returned  accurate  kept(flying)  in output | observable  ' + '  '.join(
+        f'fused@{t:g}' for t in args.weight_threshold)
+    print(header)
+    rows = []
+    for k, name in enumerate(names):
+        faced, returned, accurate, kept, output = (int(x) for x in stages[k])
+        observable_k = int((seen & (sample_band == k)).sum())
+        pct = lambda a, b: f'{100 * a / b:5.1f} %' if b else '    -  '
+        print(f'{name:12s} {faced:6d}  {pct(returned, faced)}  {pct(accurate, returned)}  {pct(kept, accurate)}'
+              f'     {pct(output, accurate)} | {observable_k:9d}  ' + '  '.join(
+                  f'{100 * fused[t][k]:7.1f} %' if fused[t][k] is not None else '      -  ' for t in args.weight_threshold))
+        rows.append({'band': name, 'faced': faced, 'returned': returned, 'accurate': accurate, 'kept_by_flying_filter':
+                     kept, 'in_cleaned_output': output, 'observable_samples': observable_k,
+                     'fused_within_5mm': {str(t): fused[t][k] for t in args.weight_threshold}})
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({'bag': args.bag, 'frame': frame['index'], 'bands': rows}, indent=2))
+    print(f'wrote {out}')
+
+
+if __name__ == '__main__':
+    main()
