@@ -111,9 +111,11 @@ def main():
     ap.add_argument('bag', nargs='?', help='its synthetic bag (ground truth); omit for real captures')
     ap.add_argument('--frames', type=int, default=10)
     ap.add_argument('--out', default='bench_out/stream')
+    ap.add_argument('--voxel', type=float, default=0.004, help='the voxel the sequence was fused at (m)')
     ap.add_argument('--no-browser', action='store_true')
     args = ap.parse_args()
     headers, entries = read_sequence(args.sequence)
+    voxel = args.voxel
     entries = [e for e in entries if 'ply' in e][:args.frames]
     if not entries:
         raise SystemExit(f'{args.sequence}: no frames with a PLY (the full mesh) to encode')
@@ -130,7 +132,7 @@ def main():
     results = []
     tmp = Path(tempfile.mkdtemp(prefix='volcap_stream_'))
     for encoding, budget in tqdm(cases, desc='encodings x budgets', unit='case'):
-        cfg = EncodeConfig(encoding=encoding, max_triangles=budget)
+        cfg = EncodeConfig(encoding=encoding, max_triangles=budget).for_voxel(voxel)
         folder = tmp / f'{encoding}_{budget}'
         writer = SequenceWriter(folder, ('glb',), cfg)
         sizes, encode_ms, bare_ms, triangles, raw_rows, gt_rows = [], [], [], [], [], []

@@ -28,7 +28,7 @@ from volcap_studio.ideal import ring_views
 
 pytestmark = pytest.mark.ros
 VOXEL = 0.01
-STEP = 0.002                    # the node's default position_step
+STEP = VOXEL / 2                # the node's default position_step: half its voxel
 
 
 def _calibration(views) -> Calibration:

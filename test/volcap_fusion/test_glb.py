@@ -76,6 +76,17 @@ def test_the_triangle_budget_holds():
     assert len(simplify(model, 0).triangles) == len(model.triangles)
 
 
+def test_the_step_follows_the_voxel():
+    assert EncodeConfig().for_voxel(0.01).position_step == 0.005
+    assert EncodeConfig().for_voxel(None).position_step == 0.002
+    assert EncodeConfig(position_step=0.001).for_voxel(0.01).position_step == 0.001
+    model = grid_model()
+    coarse = decode_glb(encode(model, EncodeConfig(max_triangles=0).for_voxel(0.01)).data)[0]
+    fine = decode_glb(encode(model, EncodeConfig(max_triangles=0).for_voxel(0.002)).data)[0]
+    error = lambda d: np.abs(d.vertices - model.vertices[nearest_same(d, model)]).max()
+    assert error(fine) <= np.sqrt(3) / 4 * 0.002 + 1e-6 < error(coarse) <= np.sqrt(3) / 4 * 0.01 + 1e-6
+
+
 def test_compressed_is_smaller_and_a_huge_mesh_is_refused_clearly():
     model = grid_model(150)
     sizes = {e: len(encode(model, EncodeConfig(encoding=e, max_triangles=0)).data) for e in ENCODINGS}

@@ -5,7 +5,8 @@ colours of the kept vertices stay as they were), reorders it for the GPU's verte
 one of three encodings:
 
 - ``meshopt`` (``EXT_meshopt_compression`` + ``KHR_mesh_quantization``): positions quantised to
-  integer steps of ``position_step`` metres (the node's scale and translation put them back),
+  integer steps of ``position_step`` metres (by default half the fusion voxel, so a vertex moves
+  at most sqrt(3)/4 of a voxel; the node's scale and translation put them back),
   colours to ``color_bits`` of linear light, both run through meshoptimizer's vertex and index
   codecs. Decodes in a browser in a few ms (three.js ``MeshoptDecoder``): the live default.
 - ``draco`` (``KHR_draco_mesh_compression``): Google's Draco (DracoPy), positions quantised to
@@ -27,7 +28,7 @@ import functools
 import json
 import struct
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import DracoPy
 import meshoptimizer
@@ -45,6 +46,7 @@ ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 # studio (REP 103, +Z up, +X front) -> glTF (+Y up, +Z front): (x, y, z) -> (y, z, x)
 STUDIO_TO_GLTF = np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0]], np.float64)
 DRACO_COLOR_ID = 1
+DEFAULT_VOXEL = 0.004      # what a position_step of 0 assumes when nobody says the voxel size
 
 
 @dataclass
@@ -55,11 +57,19 @@ class EncodeConfig:
     simplifier: str = setting('sloppy', 'how the budget is met: sloppy (meshoptimizer\'s clustering, ~15 ms for '
                               '325k triangles on one core) or quadric (edge collapse, better shapes, ~200 ms)',
                               choices=('sloppy', 'quadric'))
-    position_step: float = setting(0.002, 'position quantisation step (m); half a 4 mm voxel', 0.00001, 0.1)
+    position_step: float = setting(0.0, 'position quantisation step (m); 0: half the fusion voxel, which keeps '
+                                   'every vertex within 0.43 voxel of where fusion put it', 0.0, 0.1)
     color_bits: int = setting(12, 'bits of linear colour kept per channel', 8, 16)
 
     def validate(self) -> None:
         validate(self)
+
+    def for_voxel(self, voxel_size: float | None) -> 'EncodeConfig':
+        """This config with ``position_step`` 0 resolved: half of ``voxel_size``, or half a 4 mm voxel
+        when the voxel is not known."""
+        if self.position_step:
+            return self
+        return replace(self, position_step=(voxel_size or DEFAULT_VOXEL) / 2)
 
 
 @dataclass
@@ -190,7 +200,7 @@ def frame_extras(stamp_ns: int | None, index: int | None, frame: str) -> dict:
 def encode(model: FusedModel, cfg: EncodeConfig | None = None, stamp_ns: int | None = None,
            index: int | None = None, frame: str = 'volcap_studio') -> EncodedFrame:
     """The model (studio frame) as a GLB: simplified to the budget, then encoded."""
-    cfg = cfg or EncodeConfig()
+    cfg = (cfg or EncodeConfig()).for_voxel(None)
     t0 = time.perf_counter()
     mesh = simplify(model, cfg.max_triangles, cfg.simplifier)
     t1 = time.perf_counter()

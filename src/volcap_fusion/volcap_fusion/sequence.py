@@ -66,14 +66,14 @@ class SequenceWriter:
     frame) and its pose in the calibration's world frame."""
 
     def __init__(self, folder: str | Path, formats: tuple[str, ...] = ('ply', 'glb'),
-                 encoding: EncodeConfig | None = None):
+                 encoding: EncodeConfig | None = None, voxel_size: float | None = None):
         unknown = set(formats) - {'ply', 'glb'}
         if unknown or not formats:
             raise ValueError(f'sequence formats must be ply and/or glb, got {formats}')
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.formats = formats
-        self.encoding = encoding or EncodeConfig()
+        self.encoding = (encoding or EncodeConfig()).for_voxel(voxel_size)
         self.encoding.validate()
         if (self.folder / MANIFEST).exists():
             raise FileExistsError(f'{self.folder} already holds a sequence')

@@ -71,7 +71,7 @@ class TsdfFusionNode(Node):
         self.node_cfg = declare_config(self, FusionNodeConfig, self._on_node_config)
         cfg = declare_config(self, FusionConfig)
         self.fusion = TsdfFusion(cfg)   # validates: bad values stop the node with the reason
-        self.encoding = declare_config(self, EncodeConfig)
+        self.encoding = declare_config(self, EncodeConfig).for_voxel(cfg.voxel_size)
         self.encoding.validate()
         self.wanted = [c for c in self.node_cfg.cameras if c]
         output_dir = self.node_cfg.output_dir
