@@ -8,13 +8,14 @@ import time
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker
 
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration, CameraCalibration, StudioFrame
-from volcap_core.conversions import glb_marker, numpy_to_image
+from volcap_core.camera import CameraModel
+from volcap_core.conversions import camera_model_to_info, glb_marker, numpy_to_image
 from volcap_fusion.glb import EncodeConfig, encode
 from volcap_fusion.tsdf import FusedModel
 
@@ -35,6 +36,7 @@ def test_operator_view_forwards_images_depth_and_model(ros_context, probe_factor
     probe = probe_factory([('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     node = probe.node
     color = node.create_publisher(Image, '/cam0/' + topics.COLOR_IMAGE, qos.DRIVER)
+    info = node.create_publisher(CameraInfo, '/cam0/' + topics.COLOR_INFO, qos.DRIVER)
     depth = node.create_publisher(Image, '/cam0/' + topics.DEPTH_CLEAN, qos.DRIVER)
     mesh = node.create_publisher(Marker, '/' + topics.MESH_GLB, qos.DRIVER)
     calibration = Calibration('cam0', 'cam0_color_optical_frame', {'cam0': CameraCalibration(np.eye(4))})
@@ -58,6 +60,8 @@ def test_operator_view_forwards_images_depth_and_model(ros_context, probe_factor
 
         def send():
             stamp = time.time_ns()
+            info.publish(camera_model_to_info(CameraModel(640, 360, 305.0, 305.0, 319.5, 179.5), stamp,
+                                              'cam0_color_optical_frame'))
             color.publish(numpy_to_image(rgb, 'rgb8', stamp, 'cam0_color_optical_frame'))
             depth.publish(numpy_to_image(depth_mm, '16UC1', stamp, 'cam0_color_optical_frame'))
             mesh.publish(glb_marker(glb, stamp, 'volcap_studio', 'frame.glb'))

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker
 
@@ -51,12 +51,15 @@ class OperatorBridge(Node):
         self.cfg, self.rr = cfg, rr
         self.recording = recording
         self.newest: dict[str, tuple[type, bytes]] = {}
+        self.focal: dict[str, float] = {}     # camera -> colour fx (px), for its frustum
         self.forwarded = {'color': 0, 'depth': 0, 'model': 0}
         self.superseded = 0          # messages replaced by a newer one before they were forwarded
         self.diagnostics = Diagnostics(self, 'operator view')
         color_type = CompressedImage if cfg.color_transport == 'compressed' else Image
         color_topic = topics.COLOR_IMAGE + ('/compressed' if cfg.color_transport == 'compressed' else '')
         for cam in cfg.cameras:
+            self.create_subscription(CameraInfo, topics.camera_topic(cam, topics.COLOR_INFO),
+                                     lambda msg, c=cam: self.focal.__setitem__(c, float(msg.k[0])), qos.SENSOR)
             for stream, kind, topic in (('color', color_type, color_topic), ('depth', Image, topics.DEPTH_CLEAN)):
                 key = f'cams/{cam}/{stream}'
                 self.create_subscription(kind, topics.camera_topic(cam, topic),
@@ -111,11 +114,12 @@ class OperatorBridge(Node):
                                                                                   cfg.jpeg_quality])
         if ok:
             rr.log(key, rr.EncodedImage(contents=jpeg.tobytes(), media_type='image/jpeg'), recording=self.recording)
-            camera = key.rsplit('/', 1)[0]
-            f = 0.5 * w    # a frustum of roughly the colour camera's field of view, for orientation
-            rr.log(camera, rr.Pinhole(focal_length=f * cfg.scale, width=small.shape[1], height=small.shape[0],
-                                      camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.2),
-                   static=True, recording=self.recording)
+            name = key.split('/')[1]
+            if self.focal.get(name):      # the frustum, once the camera_info has come
+                rr.log(f'cams/{name}', rr.Pinhole(focal_length=self.focal[name] * small.shape[1] / w,
+                                                  width=small.shape[1], height=small.shape[0],
+                                                  camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.2),
+                       static=True, recording=self.recording)
             self.forwarded['color'] += 1
 
     def _log_depth(self, key: str, msg: Image) -> None:
