@@ -119,7 +119,9 @@ def simplify(model: FusedModel, max_triangles: int, simplifier: str = 'sloppy') 
                                                   target_error=1.0)
         indices = out[:count]
     optimized = np.zeros_like(indices)
-    meshoptimizer.optimize_vertex_cache(optimized, indices, len(indices), len(vertices))
+    # the FIFO cache model: 2.7 ms where the full optimiser takes 8 ms for 30 000 triangles, and
+    # the codecs' output 2 % larger
+    meshoptimizer.optimize_vertex_cache_fifo(optimized, indices, len(indices), len(vertices), 16)
     remap = np.zeros(len(vertices), np.uint32)
     unique = meshoptimizer.optimize_vertex_fetch_remap(remap, optimized, len(optimized), len(vertices))
     used = remap != 0xFFFFFFFF
