@@ -55,6 +55,7 @@ async function decode(buffer) {
   const t0 = performance.now();
   const gltf = await loader.parseAsync(buffer, '');
   state.decodeMs.push(performance.now() - t0);
+  if (state.decodeMs.length > 1000) state.decodeMs.splice(0, state.decodeMs.length - 1000);   // a long take: bounded
   return { root: gltf.scene, extras: (gltf.scene.userData || {}).volcap || {} };
 }
 

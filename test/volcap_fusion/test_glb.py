@@ -35,10 +35,10 @@ def test_every_encoding_round_trips_within_the_bounds(encoding):
     cfg = EncodeConfig(encoding=encoding, max_triangles=0, position_step=0.002)
     frame = encode(model, cfg, stamp_ns=1_733_000_000_123_456_789, index=7)
     doc, _ = unpack_glb(frame.data)
-    used = set(doc.get('extensionsUsed', []))
-    assert 'KHR_materials_unlit' in used
-    assert {'meshopt': 'EXT_meshopt_compression', 'draco': 'KHR_draco_mesh_compression'}.get(encoding, 'x') in \
-        used | {'x'}
+    compression = {'meshopt': {'EXT_meshopt_compression', 'KHR_mesh_quantization'},
+                   'draco': {'KHR_draco_mesh_compression'}, 'raw': set()}[encoding]
+    assert set(doc['extensionsUsed']) == {'KHR_materials_unlit'} | compression
+    assert set(doc.get('extensionsRequired', [])) == compression
     decoded, extras = decode_glb(frame.data)
     assert extras['volcap']['stamp_ns'] == '1733000000123456789' and extras['volcap']['index'] == 7
     assert len(decoded.triangles) == len(model.triangles)

@@ -8,10 +8,11 @@ localhost (``rerun-sdk`` ships the viewer: nothing is fetched from the internet,
 studio network would refuse). The cameras appear posed in the studio frame (+Z up) from the
 calibration, with their frustums.
 
-Why Rerun rather than the Foxglove WebSocket bridge: both cost the graph the same, one more
-subscriber per stream (the bridge takes messages serialised and decodes only the ones it
-forwards); Rerun's viewer is served by the bridge itself, where Foxglove's needs the Foxglove app
-or a Lichtblick install on the operator's machine. docs/live.md gives the measured cost.
+Why Rerun rather than the Foxglove WebSocket bridge: either adds one subscriber per stream to the
+graph (this bridge takes messages serialised and decodes only the ones it forwards), so their
+cost to the graph differs only in the bridge's own work; Rerun's viewer is served by the bridge
+itself, where Foxglove's needs the Foxglove app or a Lichtblick install on the operator's
+machine. The bridge's cost on a full rig has not been measured (docs/renderer.md).
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ import urllib.parse
 from dataclasses import dataclass
 
 import cv2
+import yaml
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -79,7 +81,7 @@ class OperatorBridge(Node):
         rr = self.rr
         try:
             calibration = Calibration.from_yaml(msg.data)
-        except (ValueError, KeyError, TypeError) as e:
+        except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
             self.diagnostics.report('warn', f'unusable calibration: {e}')
             return
         _, T_frame_world = calibration.output_frame()

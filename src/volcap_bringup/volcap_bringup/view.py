@@ -135,12 +135,13 @@ def run_view(cfg: ViewConfig, ready=None) -> None:
     web = web_root()
     sequence = None
     if not cfg.live:
-        if cfg.folder is not None and (Path(cfg.folder) / 'frames' / 'sequence.jsonl').is_file():
-            cfg.folder = Path(cfg.folder) / 'frames'      # the --out folder of volcap run
-        if cfg.folder is None or not (Path(cfg.folder) / 'sequence.jsonl').is_file():
+        folder = Path(cfg.folder) if cfg.folder is not None else None
+        if folder is not None and (folder / 'frames' / 'sequence.jsonl').is_file():
+            folder = folder / 'frames'          # the --out folder of volcap run
+        if folder is None or not (folder / 'sequence.jsonl').is_file():
             raise FileNotFoundError(f'{cfg.folder} holds no volumetric sequence (sequence.jsonl missing); '
                                     'give the frames folder of `volcap run --out DIR` (DIR/frames)')
-        sequence = Path(cfg.folder).resolve()
+        sequence = folder.resolve()
     ws_port = cfg.ws_port or cfg.port + 1
     config = {'live': f'ws://{cfg.host}:{ws_port}/' if cfg.live else None}
     handler = functools.partial(PlayerHandler, web=web, sequence=sequence, config=config)

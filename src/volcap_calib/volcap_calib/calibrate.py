@@ -2,8 +2,9 @@
 ``calibration_service`` node and ``volcap calibrate``.
 
 ``Calibrator.add`` takes one synchronised frame set, detects the board in every camera, poses
-it and keeps only what the solve needs (corners, a few depth points, the 24 patch colours), so
-a long calibration session costs little memory. ``Calibrator.solve`` runs the joint extrinsic
+it and keeps only what the solve needs (corners, a few depth points, the 24 patch colours, and
+each camera's latest depth frame for the floor), so a long calibration session costs little
+memory. ``Calibrator.solve`` runs the joint extrinsic
 solve and the per-camera colour fits and returns a ``Calibration``, with the studio frame
 fitted to the floor in the cameras' latest depth (``studio_frame``).
 """
@@ -33,7 +34,7 @@ from .extrinsics import (
     target_depth_points,
     target_pose,
 )
-from .studio_frame import FloorConfig, fit_studio_frame
+from .studio_frame import fit_studio_frame
 
 
 @dataclass
@@ -108,7 +109,7 @@ class Calibrator:
         self.patch_pixels: dict[str, list[np.ndarray]] = {c: [] for c in rig.names}
         self.models: dict[str, CameraModel] = {}
         self.views = 0
-        self.floor_points: dict[str, np.ndarray] = {}   # latest depth points per camera (colour frame)
+        self.floor_depth: dict[str, CameraFrame] = {}   # latest frame with depth per camera, for the floor
         self._grid_region = (0.0, 0.0, *board.grid_size)   # depth is sampled on the ChArUco grid
 
     def add(self, view: int, frames: dict[str, CameraFrame]) -> dict[str, str]:
@@ -120,7 +121,7 @@ class Calibrator:
                 status[name] = 'not in the rig'
                 continue
             if frame.depth is not None and frame.depth_model is not None:
-                self._keep_floor_points(name, frame)
+                self.floor_depth[name] = frame      # a reference: points are made once, at the solve
             try:
                 status[name] = self._add_camera(view, name, frame)
             except (DetectionError, ValueError) as e:
@@ -153,17 +154,17 @@ class Calibrator:
             self.patch_pixels[name].append(centres)
         return f'{len(detection)} corners, PnP {rms:.2f} px'
 
-    def _keep_floor_points(self, name: str, frame: CameraFrame) -> None:
-        try:
-            points = depth_points(frame.depth, frame.depth_model, self.rig.camera(name).T_color_depth)
-        except ValueError:
-            return          # the frame's own detection reports the mismatch
-        step = max(1, len(points) // FloorConfig.points_per_camera)
-        self.floor_points[name] = points[::step]
-
     def studio_frame(self, T_world_color: dict[str, np.ndarray], reference: str) -> StudioFrame:
         """The studio frame: the floor in the cameras' latest depth, placed by the calibrated poses."""
-        points = {c: transform_points(T_world_color[c], p) for c, p in self.floor_points.items() if c in T_world_color}
+        points = {}
+        for c, frame in self.floor_depth.items():
+            if c not in T_world_color:
+                continue
+            try:
+                local = depth_points(frame.depth, frame.depth_model, self.rig.camera(c).T_color_depth)
+            except ValueError:
+                continue    # depth not the size its camera_info says: that frame's detection said so
+            points[c] = transform_points(T_world_color[c], local)
         return fit_studio_frame(T_world_color, reference, points)
 
     def reference(self) -> np.ndarray:

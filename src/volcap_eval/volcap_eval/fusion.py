@@ -114,8 +114,8 @@ def score_frame(model: FusedModel, truth: o3d.geometry.TriangleMesh, sensors, to
     gt_v, gt_t = np.asarray(truth.vertices), np.asarray(truth.triangles)
     gt_scene = raycasting_scene(gt_v, gt_t)
     if len(model.vertices) == 0:
-        return {'accuracy_mm': None, 'completeness': 0.0, 'completeness_all': 0.0, 'completeness_feet': 0.0,
-                'vertices': 0}
+        return {'accuracy_mm': None, 'completeness': 0.0, 'completeness_all': 0.0,
+                'completeness_feet': 0.0 if T_studio_world is not None else None, 'vertices': 0}
     d_fused = gt_scene.compute_distance(o3d.core.Tensor(model.vertices.astype(np.float32))).numpy()
     points, normals = surface_samples(gt_v, gt_t, samples)
     seen = observable(points, normals, gt_scene, sensors, tof['min_range'], tof['max_range'], tof['grazing_cos'])

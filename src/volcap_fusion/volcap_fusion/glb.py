@@ -81,12 +81,18 @@ class EncodedFrame:
 
 
 # colour and axes ------------------------------------------------------------------------------
+@functools.cache
+def _linear16_table(bits: int) -> np.ndarray:
+    """Each 8-bit sRGB level as normalised 16-bit linear light, quantised to ``bits``."""
+    levels = (1 << bits) - 1
+    q = np.round(srgb_to_linear(np.arange(256) / 255.0) * levels)
+    return np.round(q * (65535.0 / levels)).astype(np.uint16)
+
+
 def linear_color16(colors_srgb8: np.ndarray, bits: int) -> np.ndarray:
     """(N, 4) uint16 normalised linear RGBA of 8-bit sRGB colours, quantised to ``bits``."""
-    levels = (1 << bits) - 1
-    q = np.round(srgb_to_linear(colors_srgb8.astype(np.float64) / 255.0) * levels)
     out = np.full((len(colors_srgb8), 4), 65535, np.uint16)
-    out[:, :3] = np.round(q * (65535.0 / levels))
+    out[:, :3] = _linear16_table(bits)[colors_srgb8]
     return out
 
 
@@ -207,8 +213,10 @@ def encode(model: FusedModel, cfg: EncodeConfig | None = None, stamp_ns: int | N
     mesh = simplify(model, cfg.max_triangles, cfg.simplifier)
     t1 = time.perf_counter()
     extras = frame_extras(stamp_ns, index, frame)
+    if not len(mesh.triangles):
+        raise ValueError('an empty mesh has no glTF form (an accessor counts at least one element)')
     writer = {'meshopt': _meshopt_glb, 'draco': _draco_glb, 'raw': _raw_glb}[cfg.encoding]
-    data = writer(mesh, cfg, extras) if len(mesh.triangles) else _raw_glb(mesh, cfg, extras)
+    data = writer(mesh, cfg, extras)
     t2 = time.perf_counter()
     return EncodedFrame(data, len(mesh.triangles), len(mesh.vertices),
                         {'simplify': (t1 - t0) * 1e3, 'encode': (t2 - t1) * 1e3})
@@ -221,7 +229,7 @@ def _bounds(v: np.ndarray) -> tuple[list, list]:
 def _raw_glb(mesh: FusedModel, cfg: EncodeConfig, extras: dict) -> bytes:
     b = _Builder()
     v = to_gltf_axes(mesh.vertices)
-    lo, hi = _bounds(v) if len(v) else ([0.0] * 3, [0.0] * 3)
+    lo, hi = _bounds(v)
     colors = linear_color16(mesh.colors, cfg.color_bits)
     pos = b.accessor(bufferView=b.view(v.tobytes(), byteStride=12, target=ARRAY_BUFFER), componentType=FLOAT,
                      count=len(v), type='VEC3', min=lo, max=hi)

@@ -8,7 +8,7 @@
   calibration's world, the encoding), then one line per time step (index, capture stamp,
   cameras, files, bytes, triangles), appended once the frame's files are in place, so a long
   take costs the same per frame and a reader skips a last line still being written;
-- ``manifest.json``: the summary a player starts from (frame rate measured from the stamps,
+- ``manifest.json``: the summary a player starts from (frame rate measured from the last 900 stamps,
   frame count, duration, encoding), rewritten atomically every second of capture and at the end.
 
 Every file is written atomically: a player polling the folder never reads half a frame.
@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,7 @@ from .tsdf import FusedModel, colors_to_uint8
 MANIFEST = 'sequence.jsonl'
 SUMMARY = 'manifest.json'
 SEQUENCE_VERSION = 2
+RATE_WINDOW = 900           # stamps the manifest's frame rate is measured over (30 s at 30 fps)
 
 
 def write_ply(path: str | Path, model: FusedModel) -> Path:
@@ -79,7 +81,9 @@ class SequenceWriter:
             raise FileExistsError(f'{self.folder} already holds a sequence')
         self.written = 0
         self.frame: tuple[str, np.ndarray] | None = None
-        self.stamps: list[int] = []
+        self.first_stamp: int | None = None
+        self.last_stamp: int | None = None
+        self.recent_stamps: deque[int] = deque(maxlen=RATE_WINDOW)     # bounded: the cost per frame stays flat
         self.bytes = 0
 
     def _append(self, doc: dict) -> None:
@@ -116,19 +120,21 @@ class SequenceWriter:
             self.bytes += len(encoded.data)
         self._append(entry)
         self.written += 1
-        self.stamps.append(int(stamp_ns))
-        rate = frame_rate(self.stamps)
+        self.first_stamp = int(stamp_ns) if self.first_stamp is None else self.first_stamp
+        self.last_stamp = int(stamp_ns)
+        self.recent_stamps.append(int(stamp_ns))
+        rate = frame_rate(self.recent_stamps)
         if self.written == 1 or self.written % max(1, round(rate or 1)) == 0:
             self.write_summary()
         return entry
 
     def write_summary(self) -> Path:
         """``manifest.json`` as the sequence stands."""
-        rate = frame_rate(self.stamps)
-        duration = (self.stamps[-1] - self.stamps[0]) / 1e9 if len(self.stamps) > 1 else 0.0
+        rate = frame_rate(self.recent_stamps)
+        duration = (self.last_stamp - self.first_stamp) / 1e9 if self.written else 0.0
         return write_json(self.folder / SUMMARY, {
             'volcap_sequence': SEQUENCE_VERSION, 'frames': self.written, 'frame_rate': rate,
-            'first_stamp_ns': str(self.stamps[0]) if self.stamps else None,
+            'first_stamp_ns': str(self.first_stamp) if self.written else None,
             'duration_s': round(duration, 3), 'frame': self.frame[0] if self.frame else None,
             'index': MANIFEST, 'glb_encoding': self.encoding.encoding if 'glb' in self.formats else None,
             'mean_glb_bytes': round(self.bytes / self.written) if self.written and 'glb' in self.formats else None,
@@ -140,8 +146,8 @@ class SequenceWriter:
             self.write_summary()
 
 
-def frame_rate(stamps: list[int]) -> float | None:
-    """Frames per second from the capture stamps (the median step: dropped sets do not lower it)."""
+def frame_rate(stamps) -> float | None:
+    """Frames per second from capture stamps (the median step: dropped sets do not lower it)."""
     if len(stamps) < 2:
         return None
     steps = np.diff(np.asarray(stamps, np.int64))

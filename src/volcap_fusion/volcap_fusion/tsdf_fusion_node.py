@@ -51,6 +51,7 @@ from volcap_core.conversions import (
     points_to_pointcloud2,
     stamp_to_ns,
 )
+from volcap_core.poses import invert
 from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
@@ -183,6 +184,7 @@ class TsdfFusionNode(Node):
     def _fuse_set(self, fs: FrameSet, calibration: Calibration, cameras: list[str], t0: float) -> None:
         frame, T_frame_world = calibration.output_frame()
         studio = calibration.studio
+        on_floor = studio is not None and studio.details.get('source') == 'floor'
         pairs = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras}
         parts = {c: p for c, p in pairs.items() if None not in p}
         plan = frame_set_views(fs.stamp_ns, cameras, parts,
@@ -197,7 +199,7 @@ class TsdfFusionNode(Node):
             return
         if plan.missing:
             self.diagnostics.report('warn', f'frame set {fs.stamp_ns} fused without {", ".join(plan.missing)}')
-        model = self.fusion.fuse(plan.views, on_floor=studio is not None and studio.details.get('source') == 'floor')
+        model = self.fusion.fuse(plan.views, on_floor=on_floor)
         if len(model.vertices) == 0:
             self.stats['empty'] += 1
             self.last = {'cameras': len(plan.views), 'vertices': 0}
@@ -223,7 +225,7 @@ class TsdfFusionNode(Node):
         if 0 <= latency_ms < 60_000:      # stamps on the rig's clock (live), not a replayed bag's
             self.latency_ms.append((time.monotonic(), latency_ms))
         if self.writer is not None:
-            self.writer.write(model, fs.stamp_ns, plan.missing, frame, np.linalg.inv(T_frame_world), encoded)
+            self.writer.write(model, fs.stamp_ns, plan.missing, frame, invert(T_frame_world), encoded)
         self.stats['fused'] += 1
         self.stats['fused_complete'] += not plan.missing
         self.last = {'fusion_ms': round(sum(model.timings_ms.values()), 1),

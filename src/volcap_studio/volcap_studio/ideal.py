@@ -5,7 +5,6 @@ every pixel."""
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from volcap_core.camera import CameraModel
 from volcap_core.color import linear_to_srgb
@@ -41,10 +40,9 @@ class IdealView:
         self.rgb = np.round(linear_to_srgb(np.clip(radiance, 0, 1)) * 255).astype(np.uint8).reshape(h, w, 3)
         z = np.where(np.isfinite(hits.t), hits.t, 0.0)        # z = 1 rays: the ray parameter is depth
         self.depth_mm = np.round(z * 1000).astype(np.uint16).reshape(h, w)
-        answer = caster.scene.cast_rays(o3d.core.Tensor(np.concatenate(
-            [np.broadcast_to(eye, rays.shape), rays], 1).astype(np.float32)))
-        primitive = np.minimum(answer['primitive_ids'].numpy(), len(subject.triangle_material) - 1)
-        self.material = np.where(np.isfinite(hits.t), subject.triangle_material[primitive], -1).reshape(h, w)
+        material = np.full(len(rays), -1, np.int64)
+        material[hits.idx] = hits.material
+        self.material = material.reshape(h, w)
 
 
 def ring_views(camera: CameraModel | None = None) -> list[tuple[str, CameraModel, np.ndarray, IdealView]]:

@@ -35,6 +35,7 @@ class Hits:
     albedo: np.ndarray     # (M, 3) linear RGB
     specular: np.ndarray   # (M,) Blinn-Phong weight
     shininess: np.ndarray  # (M,)
+    material: np.ndarray   # (M,) index into the hit object's materials
 
 
 class SceneRaycaster:
@@ -81,6 +82,7 @@ class SceneRaycaster:
         albedo = np.zeros((m, 3), np.float32)
         specular = np.zeros(m, np.float32)
         shininess = np.ones(m, np.float32)
+        material = np.zeros(m, np.int64)
         for i, obj_i in enumerate(self.objects):
             sel = np.flatnonzero(local_obj == i)
             if sel.size == 0:
@@ -92,6 +94,7 @@ class SceneRaycaster:
             normals[sel] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
             local = transform_points(invert(obj_i.pose), points[sel].astype(np.float64))
             mat_idx = obj_i.triangle_material[prim[sel]]
+            material[sel] = mat_idx
             for k, mat in enumerate(obj_i.materials):
                 in_mat = mat_idx == k
                 if in_mat.any():
@@ -102,14 +105,14 @@ class SceneRaycaster:
         normals[np.einsum('ij,ij->i', normals, dirs) > 0] *= -1
         t_all = np.full(n, np.inf, np.float32)
         t_all[idx] = t[idx]
-        return Hits(t_all, obj, idx, points, normals, albedo, specular, shininess)
+        return Hits(t_all, obj, idx, points, normals, albedo, specular, shininess, material)
 
 
 def _no_hits(n: int) -> Hits:
     e3 = np.zeros((0, 3), np.float32)
     e1 = np.zeros(0, np.float32)
     return Hits(np.full(n, np.inf, np.float32), np.full(n, -1, np.int64), np.zeros(0, np.int64),
-                e3, e3, e3, e1, e1)
+                e3, e3, e3, e1, e1, np.zeros(0, np.int64))
 
 
 def shade(hits: Hits, eye: np.ndarray, lights: list[Light], ambient: float) -> np.ndarray:
