@@ -14,7 +14,7 @@ WEB_STAMP := web/node_modules/.volcap-installed
 export MALLOC_MMAP_THRESHOLD_ := 67108864
 export MALLOC_TRIM_THRESHOLD_ := 268435456
 
-.PHONY: venv web chromium lint test test-fast demo bench colcon docs clean
+.PHONY: venv web chromium iptables lint test test-fast demo bench bench-faults colcon docs clean
 
 venv: $(STAMP)
 
@@ -58,6 +58,12 @@ chromium:
 	  echo "installing Debian chromium (the browser tests)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }
 
+# Debian's iptables: bench/multihost.py drops packets on the link with its `statistic` match.
+iptables:
+	@command -v iptables >/dev/null || { \
+	  echo "installing Debian iptables (bench/multihost.py's packet loss)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iptables; }
+
 # Style (ruff) and the package layers (import-linter contracts in .importlinter).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
@@ -83,6 +89,11 @@ bench: $(STAMP)
 	$(PY) bench/filter.py
 	test -d bench_out/calib40 || .venv/bin/volcap synth --out bench_out/calib40 --frames 0 --board-poses 40 --background-frames 0 --seed 5 --quiet
 	$(PY) bench/calib.py bench_out/calib40
+
+# Recording a rig (write speed, kill -9 and recover) and the graph across two hosts (as root).
+bench-faults: $(STAMP) iptables
+	$(PY) bench/record.py
+	$(PY) bench/multihost.py
 
 colcon: $(STAMP)
 	$(VENV)/bin/colcon build --base-paths src --build-base build --install-base install

@@ -13,7 +13,8 @@ Per voxel size (and with ``--composed``, also every node in one process), after 
 - where the rest of the machine went: each process's CPU seconds per second (psutil), the
   frame source (bag_player, standing in for the drivers) and the receiving of frames that are
   not admitted included;
-- with ``--soak``: latency and the graph's resident memory over the run (growth per minute).
+- latency and resident memory over the run, the graph's and each process's own (growth per
+  minute over the steady part): run with ``--seconds 1800 --voxels 0.01`` for the 30-minute soak.
 Writes bench_out/live.json and live.png.
 """
 from __future__ import annotations
@@ -31,18 +32,31 @@ import psutil
 REPO = Path(__file__).resolve().parents[1]
 
 
-def memory_sampler(stop: threading.Event, samples: list, period_s: float = 5.0) -> None:
-    """Resident memory of this process and every volcap process it started, every ``period_s``."""
+def process_label(proc: psutil.Process) -> str:
+    """``module[/namespace]`` of a node process (``python -m volcap_x.y_node -r __ns:=/cam3``)."""
+    args = proc.cmdline()
+    module = args[args.index('-m') + 1].split('.')[-1] if '-m' in args else proc.name()
+    ns = next((a.split(':=/')[1] for a in args if a.startswith('__ns:=/')), '')
+    return f'{module}/{ns}' if ns else module
+
+
+def memory_sampler(stop: threading.Event, samples: list, per_process: dict, period_s: float = 5.0) -> None:
+    """Resident memory of this process and every volcap process it started, every ``period_s``:
+    the sum in ``samples`` and each process's own series in ``per_process`` (label -> samples)."""
     me = psutil.Process()
     t0 = time.monotonic()
     while not stop.wait(period_s):
+        t = time.monotonic() - t0
         rss = me.memory_info().rss
+        per_process.setdefault('live (this process)', []).append((t, rss / 1e6))
         for child in me.children(recursive=True):
             try:
-                rss += child.memory_info().rss
+                child_rss = child.memory_info().rss
+                per_process.setdefault(f'{process_label(child)} [{child.pid}]', []).append((t, child_rss / 1e6))
             except psutil.Error:
-                pass
-        samples.append((time.monotonic() - t0, rss / 1e6))
+                continue
+            rss += child_rss
+        samples.append((t, rss / 1e6))
 
 
 def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: float, composed: bool,
@@ -51,8 +65,8 @@ def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: fl
     from volcap_bringup.live_controller import LiveController
     cfg = LiveConfig(calibration, bag=bag, voxel_size=voxel, seconds=seconds, warmup_s=warmup, composed=composed,
                      probe=True, source_nice=source_nice)
-    stop, memory = threading.Event(), []
-    sampler = threading.Thread(target=memory_sampler, args=(stop, memory), daemon=True)
+    stop, memory, per_process = threading.Event(), [], {}
+    sampler = threading.Thread(target=memory_sampler, args=(stop, memory, per_process), daemon=True)
     sampler.start()
     last = [0.0]
 
@@ -92,7 +106,8 @@ def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: fl
         'work_ms_per_set': work_ms, 'cores': cores, 'compute_bound_meshes_per_s': bound,
         'delivered_over_bound': delivered / bound if bound and delivered is not None else None,
         'cpu_cores_used_by_process_group': grouped,
-        'memory_mb': memory, 'latency_series': [((a - start_ns) / 1e9, (a - s) / 1e6) for a, s, _ in meshes],
+        'memory_mb': memory, 'memory_mb_per_process': per_process,
+        'latency_series': [((a - start_ns) / 1e9, (a - s) / 1e6) for a, s, _ in meshes],
         'mesh_mb_median': float(np.median([b for *_, b in meshes]) / 1e6) if meshes else None,
         'node_exit_codes': result['node_exit_codes'],
     }
@@ -123,7 +138,11 @@ def figure(runs: list[dict], path: Path) -> None:
             axes[0].plot(t, lat, '.', ms=3, label=label)
         if r['memory_mb']:
             t, mb = np.array(r['memory_mb']).T
-            axes[1].plot(t, mb, label=label)
+            axes[1].plot(t, mb, label=f'{label}: all')
+        if len(runs) == 1:            # a soak: each process's own line
+            for name, series in r.get('memory_mb_per_process', {}).items():
+                t, mb = np.array(series).T
+                axes[1].plot(t, mb, linewidth=0.7, label=name.split(' [')[0] if mb[-1] > 400 else None)
     axes[0].set(xlabel='s', ylabel='capture to mesh at the renderer, ms', title='latency per mesh')
     axes[1].set(xlabel='s', ylabel='MB resident (all processes)', title='memory')
     names = [f'{r["voxel_size"] * 1000:.0f} mm\n{r["mode"]}' for r in runs]
@@ -160,6 +179,8 @@ def main() -> int:
               f'{args.seconds:.0f} s after the graph is up', flush=True)
         r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed, args.source_nice)
         r['memory_mb_per_minute'] = growth_per_minute(r['memory_mb'])
+        r['process_mb_per_minute'] = {name: growth_per_minute(series)
+                                      for name, series in r['memory_mb_per_process'].items()}
         r['latency_ms_per_minute'] = growth_per_minute(r['latency_series'])
         runs.append(r)
 
@@ -175,6 +196,10 @@ def main() -> int:
         print(f'  drops/s: {r["drops_per_s"]}')
         print(f'  growth per minute: memory {f(r["memory_mb_per_minute"], ".1f")} MB, latency '
               f'{f(r["latency_ms_per_minute"], ".1f")} ms', flush=True)
+        for name, slope in sorted(r['process_mb_per_minute'].items(), key=lambda kv: -(kv[1] or 0)):
+            series = r['memory_mb_per_process'][name]
+            print(f'    {name:<40} {series[0][1]:7.0f} -> {series[-1][1]:7.0f} MB resident, '
+                  f'{f(slope, "+.2f")} MB/min over the steady part', flush=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / 'live.json').write_text(json.dumps(runs, indent=1))

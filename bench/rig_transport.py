@@ -206,9 +206,11 @@ def main() -> int:
     ap.add_argument('--camera', help=argparse.SUPPRESS)
     ap.add_argument('--seconds', type=float, help=argparse.SUPPRESS)
     ap.add_argument('--alone', action='store_true', help=argparse.SUPPRESS)
+    ap.add_argument('--image-subscribers', type=int, default=3 * len(CAMERAS), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child == 'pub':
-        print(json.dumps(publisher(args.frames, args.fps, expected_subscribers=0 if args.alone else 3 * len(CAMERAS))))
+        print(json.dumps(publisher(args.frames, args.fps, expected_subscribers=0 if args.alone else
+                                   args.image_subscribers)))
         return 0
     if args.child == 'sub':
         print(json.dumps(subscriber(args.camera, args.qos[0], args.seconds)))

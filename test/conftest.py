@@ -208,3 +208,23 @@ def free_port() -> int:
                 continue
             return port
     raise RuntimeError('no two free neighbouring ports')
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """``small_disk(bytes)``: a folder on a tmpfs of that size, to fill up (needs root, as CI has)."""
+    import subprocess
+    mounts = []
+
+    def make(size: int) -> Path:
+        folder = tmp_path / f'disk{len(mounts)}'
+        folder.mkdir()
+        run = subprocess.run(['mount', '-t', 'tmpfs', '-o', f'size={size}', 'tmpfs', str(folder)],
+                             capture_output=True, text=True)
+        if run.returncode:
+            pytest.skip(f'cannot mount a small tmpfs here: {run.stderr.strip()}')
+        mounts.append(folder)
+        return folder
+    yield make
+    for folder in mounts:
+        subprocess.run(['umount', '-l', str(folder)], capture_output=True)

@@ -17,6 +17,7 @@ KEYS = {
     'rosbags': 'python3-rosbags-pip', 'mcap': 'python3-mcap-pip', 'mcap_ros2': 'python3-mcap-ros2-support-pip',
     'pointcloud2': 'python3-pointcloud2-pip', 'av': 'python3-av', 'DracoPy': 'python3-dracopy-pip',
     'meshoptimizer': 'python3-meshoptimizer-pip', 'websockets': 'python3-websockets', 'rerun': 'python3-rerun-sdk-pip',
+    'isal': 'python3-isal-pip', 'zstandard': 'python3-zstandard',
     'rich': 'python3-rich', 'psutil': 'python3-psutil', 'rclpy': 'rclpy', 'launch': 'launch', 'launch_ros': 'launch_ros',
 }
 ROS_MSG = {'sensor_msgs', 'std_msgs', 'std_srvs', 'geometry_msgs', 'visualization_msgs', 'diagnostic_msgs',

@@ -105,5 +105,7 @@ def test_monitor_names_the_camera_whose_stamps_drift(tmp_path, procs):
     assert report['cameras']['cam2']['drift_ms_per_s'] == pytest.approx(1.0, abs=0.1)
     assert any('drifting' in w for w in report['cameras']['cam2']['warnings'])
     for cam in ('cam0', 'cam1', 'cam3'):
-        assert abs(report['cameras'][cam]['drift_ms_per_s']) < 0.1 and report['cameras'][cam]['level'] == 'ok'
+        # The bag (8 s) ends before the monitor (14 s): by then every camera is silent, and says so.
+        assert abs(report['cameras'][cam]['drift_ms_per_s']) < 0.1
+        assert all(w.startswith('silent for') for w in report['cameras'][cam]['warnings'])
     assert 'cam2: drifting' in text

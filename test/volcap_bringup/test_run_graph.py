@@ -21,15 +21,45 @@ def capture_bag(tmp_path_factory, shared_data):
     return out
 
 
+def corrupt_a_clean_plate_chunk(bag, out):
+    """A copy of ``bag`` with random bytes in the middle of a chunk holding clean-plate frames
+    (its CRC no longer matches), as a bad disk sector leaves a recording."""
+    import shutil
+
+    import numpy as np
+    from mcap.reader import make_reader
+    shutil.copytree(bag, out, ignore=shutil.ignore_patterns('ground_truth'))
+    shutil.copytree(bag / 'ground_truth', out / 'ground_truth')
+    (mcap,) = out.glob('*.mcap')
+    plate = [f['stamps']['cam0']['color'] for f in GroundTruth(bag).frames_in('clean_plate')]
+    with open(mcap, 'rb') as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    margin = (plate[1] - plate[0]) // 2          # the cameras' stamps jitter around cam0's
+    chunk = next(c for c in chunks if c.message_start_time > plate[0] + margin and
+                 c.message_end_time < plate[-1] - margin)
+    data = bytearray(mcap.read_bytes())
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+    data[middle:middle + 4096] = np.random.default_rng(0).integers(0, 256, 4096, np.uint8).tobytes()
+    mcap.write_bytes(bytes(data))
+    return out
+
+
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize('mode', ['processes', 'composed'])
 def test_volcap_run_fuses_every_capture_frame_set(capture_bag, tmp_path, mode, gt_calibration):
+    """(Composed: from a copy of the bag with a corrupt chunk in its clean plate, which is
+    skipped and reported, not a reason to fuse nothing.)"""
     gt = GroundTruth(capture_bag)
     gt_calibration(gt).save(tmp_path / 'calibration.yaml')
     out = tmp_path / 'run'
-    assert main(['run', str(capture_bag), '--calibration', str(tmp_path / 'calibration.yaml'), '--out', str(out),
+    bag = capture_bag if mode == 'processes' else corrupt_a_clean_plate_chunk(capture_bag, tmp_path / 'damaged')
+    assert main(['run', str(bag), '--calibration', str(tmp_path / 'calibration.yaml'), '--out', str(out),
                  '--voxel', '0.01', '--rate', '0.1', '--quiet'] + (['--composed'] if mode == 'composed' else [])) == 0
     metrics = json.loads((out / 'metrics.json').read_text())
+    if mode == 'processes':
+        assert metrics['bag_damage'] == ''
+    else:
+        assert 'skipped a damaged chunk' in metrics['bag_damage'] and 'messages lost' in metrics['bag_damage']
     captures = len(gt.frames_in('capture'))
     assert metrics['capture_frame_sets_in_bag'] == captures == 2
     assert metrics['frames_written'] == captures

@@ -3,11 +3,12 @@ published calibration, a newly published calibration used without a restart, bad
 reported while the node keeps going."""
 import numpy as np
 import pytest
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
-from volcap_bringup.processes import start_node
+from volcap_bringup.processes import start_node, stop
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.conversions import image_to_numpy, numpy_to_image
@@ -94,6 +95,20 @@ def test_new_calibration_is_used_without_restart_and_bad_images_are_reported(ros
         image_pub.publish(numpy_to_image(grey[:, :, 0], 'mono8', 1, 'f'))
         assert probe.spin_until(lambda: diagnostic('image skipped'), timeout=10)
         assert level_after() == brighter                         # still running
+        # Malformed calibrations on the latched topic: refused, the last good model kept ...
+        good = yaml.safe_load(_calibration([cam], 1.5).to_yaml())
+        for bad in ({**good, 'cameras': [cam]}, {**good, 'cameras': {cam: {**good['cameras'][cam], 'colour': 'x'}}},
+                    {**good, 'cameras': {cam: {**good['cameras'][cam],
+                                               'colour': {'method': 'matrix_3x3', 'matrix': [[1, 2]]}}}}):
+            calib_pub.publish(String(data=yaml.safe_dump(bad)))
+            assert probe.spin_until(lambda: diagnostic('calibration not used'), timeout=10)
+            assert level_after() == brighter
+        # ... and a corrector started while the bad one is latched comes up and passes images through.
+        assert stop(procs.pop()) == 0
+        probe.got[f'/{cam}/{topics.COLOR_CORRECTED}'].clear()
+        procs.append(start_node('volcap_color', 'color_corrector', {}, namespace=cam))
+        assert level_after() == 128
+        assert procs[-1].poll() is None
     finally:
         probe.close()
 

@@ -48,3 +48,24 @@ def test_drops_and_a_late_colour_stream_are_reported():
     assert report.cameras['cam3'].dropped == 8
     assert any('dropped' in w for w in report.cameras['cam3'].warnings)
     assert all(any('pairing tolerance' in w for w in h.warnings) for h in report.cameras.values())
+
+
+def test_a_camera_that_stops_is_named_silent_until_it_returns():
+    from volcap_core.health import RigHealth, silent_cameras
+    period = 33_333_333
+    health = RigHealth(['cam0', 'cam1'], silent_periods=10)
+    for k in range(60):
+        for cam in ('cam0', 'cam1'):
+            if cam == 'cam1' and k >= 30:
+                continue                                  # cam1 stops after one second
+            for stream in ('color', 'depth'):
+                health.add(cam, stream, k * period, k * period)
+    now = 60 * period
+    report = health.report(now)
+    assert report.cameras['cam1'].silent_s == pytest.approx(30 * period / 1e9, abs=0.05)
+    assert report.cameras['cam1'].level == 'error' and 'silent for 1.0 s' in report.cameras['cam1'].warnings[0]
+    assert report.cameras['cam0'].silent_s is None and report.cameras['cam0'].level != 'error'
+    assert health.report().cameras['cam1'].silent_s is None        # without a clock, no silence judged
+    # Never heard from: counted from the first frame of any camera; nothing heard: nobody silent.
+    assert silent_cameras(['a', 'b'], {'a': 0}, 2_000_000_000, period) == {'b': 2.0, 'a': 2.0}
+    assert silent_cameras(['a', 'b'], {}, 2_000_000_000, period) == {}

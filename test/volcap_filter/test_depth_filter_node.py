@@ -87,11 +87,14 @@ def test_bad_frames_are_reported_and_skipped(studio_bag, ros_context, procs, pro
         color_frame, depth_frame = f'{cam}_color_optical_frame', f'{cam}_depth_optical_frame'
         stamp = [1_000_000_000]
 
-        def send(depth, encoding='16UC1', infos=True):
+        def send(depth, encoding='16UC1', infos=True, depth_info=None):
             stamp[0] += 100_000_000
             if infos:
                 pubs[topics.COLOR_INFO].publish(camera_model_to_info(frame.color_model, stamp[0], color_frame))
-                pubs[topics.DEPTH_INFO].publish(camera_model_to_info(frame.depth_model, stamp[0], depth_frame))
+                info = camera_model_to_info(frame.depth_model, stamp[0], depth_frame)
+                for field, value in (depth_info or {}).items():
+                    setattr(info, field, value)
+                pubs[topics.DEPTH_INFO].publish(info)
             probe.spin_until(lambda: False, 0.2)
             pubs[topics.COLOR_IMAGE].publish(numpy_to_image(frame.color, 'rgb8', stamp[0], color_frame))
             pubs[topics.DEPTH_IMAGE].publish(numpy_to_image(depth, encoding, stamp[0], depth_frame))
@@ -111,6 +114,9 @@ def test_bad_frames_are_reported_and_skipped(studio_bag, ros_context, procs, pro
         assert reported('camera_info says', good[:100, :100].copy())
         assert reported('no valid pixel', np.zeros_like(good))
         assert reported('depth image expected', good.astype(np.uint8), encoding='mono8')
+        # camera_info a node must not trust: a size that would exhaust memory, NaN distortion
+        assert reported('pixels a side', good, depth_info={'width': 1_000_000, 'height': 1_000_000})
+        assert reported('distortion coefficients must be finite', good, depth_info={'d': [float('nan')] * 5})
         send(good)
         assert probe.spin_until(lambda: probe.got[f'/{cam}/{topics.DEPTH_CLEAN}'], 30)
         assert procs[-1].poll() is None

@@ -231,3 +231,21 @@ def test_depth_a_driver_registered_survives_cleaning(k4a_bag):
     native = DepthRegistration(cam.depth, cam.color, cam.T_color_depth, (1280, 720)).register(frame.depth).depth
     bridged = fill_lattice_gaps(aligned, cam.color.fx)
     assert np.count_nonzero(bridged) > 0.95 * np.count_nonzero(native)
+
+
+@pytest.mark.parametrize('damage', ['truncated', 'garbage', 'no sums', 'wrong shape'])
+def test_a_damaged_clean_plate_file_is_a_clear_error(tmp_path, damage):
+    path = tmp_path / 'bg.npz'
+    m = BackgroundModel()
+    m.add(np.full((4, 5, 3), 10, np.uint8), np.ones((2, 2), np.float32))
+    m.save(str(path))
+    if damage == 'truncated':
+        path.write_bytes(path.read_bytes()[:100])
+    elif damage == 'garbage':
+        path.write_bytes(b'not a clean plate')
+    elif damage == 'no sums':
+        np.savez(path, n=1, depth=np.zeros(0))
+    else:
+        np.savez(path, n=1, sum=np.zeros((4, 5)), sum2=np.zeros((4, 5)), depth=np.zeros(0))
+    with pytest.raises(ValueError, match='clean plate'):
+        BackgroundModel.load(str(path))

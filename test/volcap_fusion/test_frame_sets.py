@@ -56,3 +56,17 @@ def test_cameras_to_fuse_come_from_the_calibration_or_the_parameter():
     assert fused_cameras(CAMERAS, ['cam2', 'cam0']) == ['cam2', 'cam0']
     with pytest.raises(ValueError, match=r"\['cam9'\] are not in the calibration"):
         fused_cameras(CAMERAS, ['cam0', 'cam9'])
+
+
+def test_a_frame_set_keeps_the_phase_it_was_captured_in():
+    from volcap_fusion.frame_sets import PhaseTimeline
+    timeline = PhaseTimeline()
+    assert timeline.at(5) is None
+    timeline.change('clean_plate')
+    for stamp in (10, 20):
+        timeline.frame(stamp)
+    timeline.change('capture')          # sent after the frames stamped 20 and before
+    timeline.frame(30)
+    # A set stamped 20 emitted now (it waited for a late camera) is still clean plate.
+    assert timeline.at(20) == 'clean_plate' and timeline.at(10) == 'clean_plate'
+    assert timeline.at(30) == 'capture' and timeline.at(25) == 'capture'

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import open3d as o3d
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker
@@ -41,6 +41,16 @@ def _calibration(views) -> Calibration:
     return calibration
 
 
+def _camera_publishers(node, views) -> dict:
+    """(camera, topic) -> publisher of each camera's cleaned depth and corrected colour with infos."""
+    pubs = {}
+    for name, *_ in views:
+        for topic, kind in ((topics.DEPTH_CLEAN, Image), (topics.DEPTH_CLEAN_INFO, CameraInfo),
+                            (topics.COLOR_CORRECTED, Image), (topics.COLOR_CORRECTED_INFO, CameraInfo)):
+            pubs[(name, topic)] = node.create_publisher(kind, f'/{name}/{topic}', qos.EVERY_FRAME)
+    return pubs
+
+
 @pytest.mark.timeout(300)
 def test_glb_stream_decodes_in_another_process_within_the_bounds(ros_context, procs, probe_factory, tmp_path,
                                                                  browser, free_port):
@@ -54,11 +64,7 @@ def test_glb_stream_decodes_in_another_process_within_the_bounds(ros_context, pr
     node = probe.node
     node.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED).publish(
         String(data=_calibration(views).to_yaml()))
-    pubs = {}
-    for name, *_ in views:
-        for topic, kind in ((topics.DEPTH_CLEAN, Image), (topics.DEPTH_CLEAN_INFO, CameraInfo),
-                            (topics.COLOR_CORRECTED, Image), (topics.COLOR_CORRECTED_INFO, CameraInfo)):
-            pubs[(name, topic)] = node.create_publisher(kind, f'/{name}/{topic}', qos.EVERY_FRAME)
+    pubs = _camera_publishers(node, views)
     assert probe.spin_until(lambda: all(p.get_subscription_count() for p in pubs.values()), timeout=60)
     viewer = subprocess.Popen([sys.executable, '-m', 'volcap_bringup.cli', 'view', '--live', '--port',
                                str(free_port)], stdout=subprocess.PIPE, text=True)
@@ -122,3 +128,82 @@ def test_glb_stream_decodes_in_another_process_within_the_bounds(ros_context, pr
     assert probe.spin_until(lambda: any(kv.key == 'glb_mbit_per_s' for _, m in probe.got['/' + topics.DIAGNOSTICS]
                                         for s in m.status if s.name.endswith('tsdf fusion') for kv in s.values),
                             timeout=10)
+
+
+def _diagnostics(probe, since: int = 0) -> list:
+    return [s for _, m in probe.got['/' + topics.DIAGNOSTICS][since:] for s in m.status
+            if s.name.endswith('tsdf fusion')]
+
+
+@pytest.mark.timeout(300)
+def test_faults_bad_calibration_silent_camera_and_full_disk(ros_context, procs, probe_factory, small_disk):
+    """The fusion node through three faults, never going down: a malformed latched calibration
+    (the last good one is kept), a camera that stops and comes back (named while silent, not OK
+    while short), and the sequence's disk filling up (recording stops whole, fusion goes on)."""
+    views = ring_views()
+    out = small_disk(3_000_000) / 'frames'
+    procs.append(start_node('volcap_fusion', 'tsdf_fusion', {
+        'voxel_size': VOXEL, 'output_dir': str(out), 'reliable': True, 'frame_timeout_ms': 300.0,
+        'silent_periods': 3.0, 'encoding': 'raw', 'max_triangles': 0}))
+    probe = probe_factory([('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
+    node = probe.node
+    calibration_pub = node.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
+    calibration_pub.publish(String(data=_calibration(views).to_yaml()))
+    pubs = _camera_publishers(node, views)
+    assert probe.spin_until(lambda: all(p.get_subscription_count() for p in pubs.values()), timeout=60)
+    stamp = [2_000_000_000]
+
+    def send(skip=()):
+        stamp[0] += 200_000_000
+        for name, camera, _, view in views:
+            if name in skip:
+                continue
+            frame_id = f'{name}_color_optical_frame'
+            for info in (topics.DEPTH_CLEAN_INFO, topics.COLOR_CORRECTED_INFO):
+                pubs[(name, info)].publish(camera_model_to_info(camera, stamp[0], frame_id))
+            pubs[(name, topics.DEPTH_CLEAN)].publish(numpy_to_image(view.depth_mm, '16UC1', stamp[0], frame_id))
+            pubs[(name, topics.COLOR_CORRECTED)].publish(numpy_to_image(view.rgb, 'rgb8', stamp[0], frame_id))
+        probe.spin_until(lambda: False, 0.2)
+
+    def fused():
+        values = [{kv.key: kv.value for kv in s.values} for s in _diagnostics(probe)]
+        return max([int(v['fused']) for v in values if 'fused' in v], default=0)
+
+    def until(condition, timeout=30, **kwargs):
+        deadline = probe.node.get_clock().now().nanoseconds + timeout * 1e9
+        while probe.node.get_clock().now().nanoseconds < deadline:
+            send(**kwargs)
+            if condition():
+                return True
+        return False
+
+    def reported(level, text, since):
+        return any(s.level == level and text in s.message for s in _diagnostics(probe, since))
+
+    assert until(lambda: fused() >= 1)
+    # 1. A malformed calibration on the latched topic: refused, the last good one kept.
+    since = len(probe.got['/' + topics.DIAGNOSTICS])
+    calibration_pub.publish(String(data='version: 1\nreference: cam0\nworld_frame: w\ncameras: [cam0, cam1]\n'))
+    assert until(lambda: reported(DiagnosticStatus.ERROR, 'keeping the last good one', since))
+    before = fused()
+    assert until(lambda: fused() > before)
+    # 2. cam3 goes silent: named at ERROR while it is, then fusion is whole again when it returns.
+    since = len(probe.got['/' + topics.DIAGNOSTICS])
+    assert until(lambda: reported(DiagnosticStatus.ERROR, 'silent cameras (no frames): cam3', since), skip=('cam3',))
+    named = [{kv.key: kv.value for kv in s.values} for s in _diagnostics(probe, since) if 'silent' in s.message]
+    assert named[-1]['silent_cameras'] == 'cam3'
+    since = len(probe.got['/' + topics.DIAGNOSTICS])
+    assert until(lambda: any('silent' not in s.message and 'short' not in s.message and 'fused' in s.message
+                             for s in _diagnostics(probe, since)))
+    # 3. The sequence's disk is full by now (3 MB hold about two frames): recording stopped with
+    # the file and the free space named, every frame listed is whole, and fusion goes on.
+    assert reported(DiagnosticStatus.ERROR, 'disk full', 0) or until(
+        lambda: reported(DiagnosticStatus.ERROR, 'disk full', 0))
+    message = next(s.message for s in _diagnostics(probe) if 'disk full' in s.message)
+    assert 'recording stopped' in message and 'MB free' in message and 'whole frames' in message
+    frames = read_manifest(out)
+    assert frames and all(len(read_ply(out / f['ply']).triangles) == f['triangles'] for f in frames)
+    assert not [p for p in out.iterdir() if p.name.startswith('.')]
+    before = fused()
+    assert until(lambda: fused() > before)
+    assert procs[-1].poll() is None

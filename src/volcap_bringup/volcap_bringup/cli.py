@@ -63,13 +63,24 @@ def cmd_info(args) -> int:
     from volcap_core.bag_io import BagReader
     with BagReader(args.bag) as bag:
         counts = bag.topic_counts
+        readable = None if args.quick else bag.verify()
         if bag.damage:
             print(f'damaged bag: {bag.damage}')
+            print(f'  (`volcap bag recover {args.bag} OUT` writes a whole copy of what is readable)')
         duration = (bag.end_ns - bag.start_ns) / 1e9
-        print(f'{args.bag}: {bag.message_count} messages, {duration:.3f} s')
+        checked = '' if readable is None else f' ({readable} readable, every chunk CRC checked)'
+        print(f'{args.bag}: {bag.message_count} messages{checked}, {duration:.3f} s')
         latched = bag.latched_topics
         for topic, msgtype in sorted(bag.topics.items()):
             print(f'  {topic:<36} {msgtype:<28} {counts.get(topic, 0):6d}{"  (latched)" if topic in latched else ""}')
+    return 1 if readable is not None and bag.damage else 0
+
+
+def cmd_bag_recover(args) -> int:
+    from volcap_core.bag_io import recover
+    result = recover(args.bag, args.out, args.compression)
+    print(f'wrote {args.out}: {result.messages} messages')
+    print(f'lost: {result.damage}' if result.damage else f'{args.bag} was whole: nothing lost')
     return 0
 
 
@@ -255,7 +266,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     i = sub.add_parser('info', help='topics, types and message counts of a bag')
     i.add_argument('bag')
+    i.add_argument('--quick', action='store_true', help='metadata only (skip reading every message and CRC)')
     i.set_defaults(func=cmd_info)
+
+    b = sub.add_parser('bag', help='bag maintenance')
+    bsub = b.add_subparsers(dest='bag_command', required=True)
+    br = bsub.add_parser('recover', help='copy every readable message of a damaged bag (cut off, corrupt '
+                                         'chunks, unfinished split) into a new whole bag')
+    br.add_argument('bag')
+    br.add_argument('out', help='bag directory to create')
+    br.add_argument('--compression', default='none', choices=('none', 'zstd'))
+    br.set_defaults(func=cmd_bag_recover)
 
     e = sub.add_parser('eval', help='score a pipeline stage against ground truth or real data')
     esub = e.add_subparsers(dest='stage', required=True)
@@ -291,7 +312,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (FileExistsError, FileNotFoundError, ValueError, RuntimeError, KeyError) as e:
+    except (OSError, ValueError, RuntimeError, KeyError) as e:
         print(f'volcap {args.command}: error: {e}', file=sys.stderr)
 
         return 2

@@ -127,14 +127,17 @@ class RigMonitor(Node):
         self.create_timer(1.0, self._publish)
 
     def _publish(self) -> None:
-        self.report = self.health.report()
+        self.report = self.health.report(time.time_ns())
         statuses = []
         for cam, h in self.report.cameras.items():
             message = '; '.join(h.warnings) or f'{h.rate_hz:.1f} Hz'
             values = {k: v for k, v in h.to_dict().items() if k not in ('camera', 'warnings', 'level')}
             statuses.append(diagnostic_status(f'volcap monitor {cam}', h.level, message, values, hardware_id=cam))
         spread = self.report.spread_ms_max
-        statuses.append(diagnostic_status('volcap monitor rig', 'warn' if self.report.warnings else 'ok',
+        silent = [c for c, h in self.report.cameras.items() if h.silent_s is not None]
+        statuses.append(diagnostic_status('volcap monitor rig', 'error' if silent else
+                                          'warn' if self.report.warnings else 'ok',
+                                          f'silent: {", ".join(silent)}' if silent else
                                           f'frame-set stamp spread up to {spread:.1f} ms' if spread is not None
                                           else 'waiting for frames',
                                           {'period_ms': round(self.report.period_ms, 3),
@@ -155,5 +158,7 @@ def health_table(report):
         table.add_column(column, justify='left' if column in ('camera', 'status') else 'right')
     for cam, h in report.cameras.items():
         table.add_row(cam, f'{h.rate_hz:.1f}', str(h.dropped), ms(h.color_depth_offset_ms), ms(h.rig_offset_ms),
-                      ms(h.drift_ms_per_s, '{:+.2f}'), '[yellow]' + '; '.join(h.warnings) if h.warnings else '[green]ok')
+                      ms(h.drift_ms_per_s, '{:+.2f}'),
+                      ('[red]' if h.silent_s is not None else '[yellow]') + '; '.join(h.warnings) if h.warnings
+                      else '[green]ok')
     return table

@@ -34,10 +34,12 @@ def ros_args(params: dict) -> list[str]:
 
 
 def start_node(package: str, executable: str, params: dict | None = None, env: dict | None = None,
-               namespace: str = '', remaps: dict[str, str] | None = None, **popen) -> subprocess.Popen:
+               namespace: str = '', remaps: dict[str, str] | None = None, wrapper: tuple[str, ...] = (),
+               **popen) -> subprocess.Popen:
     """Run a node in its own process (``python -m`` its module, with this interpreter),
-    optionally in a namespace (``-r __ns:=/cam0``, as a launch file does) and with topic remaps
-    (``-r color/image_raw:=rgb/image_raw``, as onto a vendor driver's topics)."""
+    optionally in a namespace (``-r __ns:=/cam0``, as a launch file does), with topic remaps
+    (``-r color/image_raw:=rgb/image_raw``, as onto a vendor driver's topics) and under a
+    ``wrapper`` command (``('ip', 'netns', 'exec', 'host1')``: on another test host)."""
     module, _ = NODES[(package, executable)]
     full_env = dict(os.environ)
     full_env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
@@ -45,7 +47,7 @@ def start_node(package: str, executable: str, params: dict | None = None, env: d
     args = ros_args(params or {}) + (['-r', f'__ns:=/{namespace.strip("/")}'] if namespace else [])
     for source, target in (remaps or {}).items():
         args += ['-r', f'{source}:={target}']
-    return subprocess.Popen([sys.executable, '-m', module, *args], env=full_env, **popen)
+    return subprocess.Popen([*wrapper, sys.executable, '-m', module, *args], env=full_env, **popen)
 
 
 def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:

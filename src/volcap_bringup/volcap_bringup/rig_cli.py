@@ -81,12 +81,12 @@ def cmd_monitor(args) -> int:
             while time.monotonic() < end:
                 executor.spin_once(timeout_sec=0.1)
                 if time.monotonic() >= next_draw:
-                    live.update(health_table(node.health.report()), refresh=True)
+                    live.update(health_table(node.health.report(time.time_ns())), refresh=True)
                     next_draw = time.monotonic() + 1.0
     except KeyboardInterrupt:
         pass
     finally:
-        report = node.health.report()
+        report = node.health.report(time.time_ns())
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()

@@ -143,6 +143,7 @@ def run_graph(cfg: RunConfig) -> dict:
         layout = camera_topics(reader, rig.names)
         capture_sets = _capture_sets(reader, layout[rig.names[0]]['color'])
         duration = (reader.end_ns - reader.start_ns) / 1e9
+        bag_damage = reader.damage       # what the scan met; the player reports the same as it plays
     cameras = [c for c in rig.names if c in calibration.cameras]
     if not cameras:
         raise ValueError(f'no camera of {bag} is in the calibration {calibration_path}')
@@ -200,7 +201,8 @@ def run_graph(cfg: RunConfig) -> dict:
         while time.monotonic() < end:      # the last clouds still in flight
             executor.spin_once(timeout_sec=0.05)
     finally:
-        codes = [stop(p) for p in procs]
+        codes = [stop(p) for p in procs] or [getattr(node, 'exit_code', 0) for node in hosted]
+        failures = [node.writer_failure for node in hosted if getattr(node, 'writer_failure', '')]
         for node in hosted:
             executor.remove_node(node)
             node.destroy_node()
@@ -209,7 +211,8 @@ def run_graph(cfg: RunConfig) -> dict:
         probe.destroy_node()
         rclpy.try_shutdown()
     return {'mode': 'composed' if cfg.composed else 'processes', 'cameras': cameras,
-            'capture_frame_sets_in_bag': capture_sets, 'playback_rate': cfg.rate, 'voxel_size': cfg.voxel_size,
+            'capture_frame_sets_in_bag': capture_sets, 'bag_damage': bag_damage,
+            'recording_failure': '; '.join(failures), 'playback_rate': cfg.rate, 'voxel_size': cfg.voxel_size,
             'wall_s': time.monotonic() - t_start, 'probe': summary,
             'node_exit_codes': {f'{exe}{"/" + ns if ns else ""}': c for (_, exe, ns, _, _), c in zip(nodes, codes)}}
 
@@ -274,6 +277,12 @@ class RunReport:
         if p['latency_ms_median'] is not None:
             out.append(f'latency from entering the graph to the mesh: median {p["latency_ms_median"]:.0f} ms, '
                        f'p95 {p["latency_ms_p95"]:.0f} ms; mesh rate {p["mesh_rate_hz"] or 0:.2f} Hz')
+        if m.get('recording_failure'):
+            out.append(m['recording_failure'])
+        if m.get('bag_damage'):
+            out.append(f'damaged bag, every readable frame set used: {m["bag_damage"]}')
+        if 'figures_error' in m:
+            out.append(f'no figures: {m["figures_error"]}')
         if 'raw_vs_clean_error' in m:
             out.append(f'no raw-vs-clean figure: {m["raw_vs_clean_error"]}')
         out.append(f'metrics: {self.out / "metrics.json"}  renders: {self.out / "renders"}')
@@ -285,10 +294,7 @@ class RunReport:
 def run(cfg: RunConfig) -> RunReport:
     """`volcap run`: the bag through the graph, then renders of the first, middle and last fused
     frames, the raw-vs-clean figure (paper 000 Figs. 16/18) and ``metrics.json``."""
-    from volcap_eval.fusion import raw_fusion
-    from volcap_eval.render import render_rows
-    from volcap_fusion.sequence import MANIFEST, read_manifest, read_ply
-    from volcap_fusion.tsdf import FusionConfig
+    from volcap_fusion.sequence import MANIFEST, read_manifest
     out = Path(cfg.out)
     metrics = run_graph(cfg)
     frames = read_manifest(out / 'frames') if (out / 'frames' / MANIFEST).exists() else []
@@ -300,6 +306,20 @@ def run(cfg: RunConfig) -> RunReport:
     poses = {c: T_frame_world @ calibration.T_world_color(c) for c in cameras}
     on_floor = calibration.studio is not None and calibration.studio.details.get('source') == 'floor'
 
+    try:      # the figures are extra: on a full disk the sequence and metrics.json still count
+        _figures(cfg, out, frames, poses, on_floor, metrics)
+    except OSError as e:
+        metrics['figures_error'] = str(e)
+    write_json(out / 'metrics.json', metrics)
+    return RunReport(metrics, out)
+
+
+def _figures(cfg: RunConfig, out: Path, frames: list[dict], poses: dict, on_floor: bool, metrics: dict) -> None:
+    """Renders of the first, middle and last frames and the raw-vs-clean figure."""
+    from volcap_eval.fusion import raw_fusion
+    from volcap_eval.render import render_rows
+    from volcap_fusion.sequence import read_ply
+    from volcap_fusion.tsdf import FusionConfig
     if frames:
         picks = sorted({0, len(frames) // 2, len(frames) - 1})
         metrics['renders'] = [str(render_rows([(f'frame {k}', read_ply(out / 'frames' / frames[k]['ply']))],
@@ -314,5 +334,3 @@ def run(cfg: RunConfig) -> RunReport:
                                                       out / 'renders' / 'raw_vs_clean.png', frame_on=clean))
         except ValueError as e:     # the figure is extra: the sequence and metrics are kept
             metrics['raw_vs_clean_error'] = str(e)
-    write_json(out / 'metrics.json', metrics)
-    return RunReport(metrics, out)

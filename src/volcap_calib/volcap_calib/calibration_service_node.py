@@ -95,7 +95,7 @@ class CalibrationService(Node):
             try:
                 self._publish(Calibration.load(output))
                 self.get_logger().info(f'published the existing calibration {output}')
-            except (ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError) as e:
+            except ValueError as e:
                 self.diagnostics.report('warn', f'existing {output} is unusable: {e}')
         self.get_logger().info('calibration_service started')
 
@@ -216,7 +216,12 @@ class CalibrationService(Node):
         return response
 
     def _publish(self, calibration: Calibration) -> None:
-        self.pub_calibration.publish(String(data=calibration.to_yaml()))
+        try:
+            text = calibration.checked_yaml()
+        except ValueError as e:
+            self.diagnostics.report('error', f'calibration not published (the nodes would refuse it): {e}')
+            return
+        self.pub_calibration.publish(String(data=text))
         frame, T_frame_world = calibration.output_frame()
         poses = PoseArray(header=make_header(time.time_ns(), frame))
         poses.poses = [matrix_to_pose(T_frame_world @ cam.T_world_color) for cam in calibration.cameras.values()]

@@ -9,7 +9,6 @@ from collections import deque
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from volcap_core.calibration import Calibration
 from volcap_core.color import ColorModel
@@ -60,7 +59,7 @@ class CameraCorrection:
                 raise ValueError(f'the calibration has no colour model for {self.camera}')
             model = ColorModel.from_dict(cam.color)
             corrector = ImageCorrector(model)
-        except (ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError) as e:
+        except ValueError as e:
             return False, f'calibration not used, keeping {self.model_text}: {e}'
         self.corrector = corrector
         self.model_text = f'{model.method}{" + harmonisation" if model.post is not None else ""} ({corrector.kind})'

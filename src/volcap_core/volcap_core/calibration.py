@@ -10,10 +10,22 @@ import numpy as np
 import yaml
 
 from .files import atomic_write
-from .poses import invert, matrix_from_list, matrix_to_list
+from .poses import invert, matrix_to_list, rigid_transform
 
 VERSION = 1
 STUDIO_FRAME = 'volcap_studio'
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file or message that is not a usable volcap calibration (says which field)."""
+
+
+def _number(value, what: str, minimum: float = 0.0):
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < minimum:
+        raise CalibrationFileError(f'{what}: expected a finite number >= {minimum}, got {value!r}')
+    return value
 
 
 @dataclass
@@ -30,11 +42,11 @@ class StudioFrame:
     @classmethod
     def from_dict(cls, d: dict) -> 'StudioFrame':
         if not isinstance(d, dict) or 'T_world_studio' not in d:
-            raise ValueError('studio: expected a mapping with T_world_studio')
-        T = matrix_from_list(d['T_world_studio'])
-        R = T[:3, :3]
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-            raise ValueError('studio: T_world_studio is not a rigid transform')
+            raise CalibrationFileError('studio: expected a mapping with T_world_studio')
+        try:
+            T = rigid_transform(d['T_world_studio'], 'studio: T_world_studio')
+        except ValueError as e:
+            raise CalibrationFileError(str(e)) from e
         return cls(T, str(d.get('frame', STUDIO_FRAME)), {k: v for k, v in d.items()
                                                           if k not in ('frame', 'T_world_studio')})
 
@@ -54,9 +66,29 @@ class CameraCalibration:
                 'colour': self.color}
 
     @classmethod
-    def from_dict(cls, d: dict) -> 'CameraCalibration':
-        return cls(matrix_from_list(d['T_world_color']), d.get('color_frame', ''), d.get('reproj_rms_px'),
-                   d.get('depth_rms_mm'), int(d.get('views', 0)), d.get('colour'))
+    def from_dict(cls, d: dict, name: str = 'camera') -> 'CameraCalibration':
+        """Checked field by field: a CalibrationFileError names the first one that is wrong."""
+        from .color import ColorModel
+        if not isinstance(d, dict):
+            raise CalibrationFileError(f'cameras: {name}: expected a mapping, got {type(d).__name__}')
+        if 'T_world_color' not in d:
+            raise CalibrationFileError(f'cameras: {name}: no T_world_color')
+        try:
+            T = rigid_transform(d['T_world_color'], f'cameras: {name}: T_world_color')
+        except ValueError as e:
+            raise CalibrationFileError(str(e)) from e
+        views = _number(d.get('views', 0), f'cameras: {name}: views')
+        color = d.get('colour')
+        if color is not None:
+            if not isinstance(color, dict):
+                raise CalibrationFileError(f'cameras: {name}: colour: expected a colour model mapping, '
+                                       f'got {type(color).__name__}')
+            try:
+                ColorModel.from_dict(color)
+            except (KeyError, TypeError, ValueError) as e:
+                raise CalibrationFileError(f'cameras: {name}: colour: {e}') from e
+        return cls(T, str(d.get('color_frame') or ''), _number(d.get('reproj_rms_px'), f'cameras: {name}: reproj_rms_px'),
+                   _number(d.get('depth_rms_mm'), f'cameras: {name}: depth_rms_mm'), int(views or 0), color)
 
 
 @dataclass
@@ -98,20 +130,52 @@ class Calibration:
 
     @classmethod
     def from_yaml(cls, text: str) -> 'Calibration':
-        d = yaml.safe_load(text)
+        """A calibration from its YAML, every field checked; CalibrationFileError (a ValueError) says
+        what is wrong, so a subscriber can refuse it and keep the one it has."""
+        try:
+            d = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise CalibrationFileError(f'not YAML: {e}') from e
         if not isinstance(d, dict) or 'cameras' not in d:
-            raise ValueError('not a volcap calibration (no cameras)')
+            raise CalibrationFileError('not a volcap calibration (no cameras)')
         if d.get('version') != VERSION:
-            raise ValueError(f'calibration version {d.get("version")!r} is not supported (expected {VERSION})')
+            raise CalibrationFileError(f'calibration version {d.get("version")!r} is not supported (expected {VERSION})')
+        cameras = d['cameras']
+        if not isinstance(cameras, dict) or not cameras:
+            raise CalibrationFileError(f'cameras: expected a mapping of camera name to calibration, got '
+                                   f'{type(cameras).__name__ if cameras else "nothing"}')
+        for key in ('reference', 'world_frame'):
+            if not isinstance(d.get(key), str) or not d[key]:
+                raise CalibrationFileError(f'{key}: expected a name, got {d.get(key)!r}')
         known = {'version', 'created', 'reference', 'world_frame', 'method', 'cameras'}
-        return cls(d['reference'], d['world_frame'],
-                   {n: CameraCalibration.from_dict(c) for n, c in d['cameras'].items()},
-                   d.get('method', ''), d.get('created', ''), {k: v for k, v in d.items() if k not in known})
+        calibration = cls(d['reference'], d['world_frame'],
+                          {str(n): CameraCalibration.from_dict(c, str(n)) for n, c in cameras.items()},
+                          str(d.get('method') or ''), str(d.get('created') or ''),
+                          {k: v for k, v in d.items() if k not in known})
+        _ = calibration.studio          # checks the studio frame, when there is one
+        return calibration
+
+    def checked_yaml(self) -> str:
+        """The YAML, after reading it back with every check a subscriber makes: a calibration
+        that the nodes would refuse is never written or published."""
+        text = self.to_yaml()
+        Calibration.from_yaml(text)
+        return text
 
     def save(self, path: str | Path) -> Path:
-        text = self.to_yaml()
+        text = self.checked_yaml()
         return atomic_write(path, lambda f: f.write(text), binary=False)
 
     @classmethod
     def load(cls, path: str | Path) -> 'Calibration':
-        return cls.from_yaml(Path(path).read_text())
+        """Read and check ``path``; CalibrationFileError names the file and what is wrong with it."""
+        try:
+            text = Path(path).read_text()
+        except FileNotFoundError as e:
+            raise CalibrationFileError(f'calibration {path} does not exist') from e
+        except (OSError, UnicodeDecodeError) as e:
+            raise CalibrationFileError(f'calibration {path} is unreadable: {e}') from e
+        try:
+            return cls.from_yaml(text)
+        except CalibrationFileError as e:
+            raise CalibrationFileError(f'calibration {path}: {e}') from e

@@ -14,6 +14,9 @@ import numpy as np
 DISTORTION_MODELS = {5: 'plumb_bob', 8: 'rational_polynomial'}
 
 
+MAX_IMAGE_SIDE = 16384       # pixels: beyond any depth or colour camera, below a size that exhausts memory
+
+
 @dataclass(frozen=True)
 class CameraModel:
     width: int
@@ -25,12 +28,16 @@ class CameraModel:
     dist: tuple[float, ...] = field(default=(0.0,) * 5)
 
     def __post_init__(self):
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(f'camera size must be positive, got {self.width}x{self.height}')
-        if not (self.fx > 0 and self.fy > 0):
+        if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
+            raise ValueError(f'camera size must be 1-{MAX_IMAGE_SIDE} pixels a side, got {self.width}x{self.height}')
+        if not (np.isfinite(self.fx) and np.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
             raise ValueError(f'focal lengths must be positive, got fx={self.fx} fy={self.fy}')
+        if not (np.isfinite(self.cx) and np.isfinite(self.cy)):
+            raise ValueError(f'principal point must be finite, got cx={self.cx} cy={self.cy}')
         if len(self.dist) not in DISTORTION_MODELS:
             raise ValueError(f'expected 5 or 8 distortion coefficients, got {len(self.dist)}')
+        if not np.all(np.isfinite(self.dist)):
+            raise ValueError(f'distortion coefficients must be finite, got {list(self.dist)}')
         # plain Python numbers (models built from numpy arrays must still serialise to YAML)
         for name in ('width', 'height'):
             object.__setattr__(self, name, int(getattr(self, name)))
@@ -85,8 +92,12 @@ class CameraModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> 'CameraModel':
-        return cls(int(d['width']), int(d['height']), float(d['fx']), float(d['fy']),
-                   float(d['cx']), float(d['cy']), tuple(d.get('D', (0.0,) * 5)))
+        """Checked: anything but a usable model is a ValueError saying what is wrong."""
+        try:
+            return cls(int(d['width']), int(d['height']), float(d['fx']), float(d['fy']),
+                       float(d['cx']), float(d['cy']), tuple(float(v) for v in d.get('D', (0.0,) * 5)))
+        except (KeyError, TypeError, AttributeError, OverflowError) as e:
+            raise ValueError(f'not a camera model ({type(e).__name__}: {e})') from e
 
 
 # Azure Kinect: how each sensor mode crops and scales the factory calibration image.

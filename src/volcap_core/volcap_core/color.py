@@ -76,10 +76,17 @@ class ColorModel:
         if self.method not in METHODS:
             raise ValueError(f'unknown colour model {self.method!r}; choose from {METHODS}')
         self.matrix = np.asarray(self.matrix, dtype=np.float64)
+        if self.exponents is not None and (len(self.exponents) != 3 or not all(
+                np.isfinite(e) and e > 0 for e in self.exponents)):
+            raise ValueError(f'exponents must be 3 positive numbers, got {self.exponents}')
+        features = 3 if self.method == 'paper_diagonal' else \
+            model_features(self.method, np.full((1, 3), 0.5), self.exponents).shape[1]
+        if self.matrix.shape != (3, features) or not np.all(np.isfinite(self.matrix)):
+            raise ValueError(f'a {self.method} model needs a finite 3x{features} matrix, got {self.matrix.shape}')
         if self.post is not None:
             self.post = np.asarray(self.post, dtype=np.float64)
-            if self.post.shape != (3, 4) or self.method == 'paper_diagonal':
-                raise ValueError('post must be a 3x4 affine map on a linear-RGB model')
+            if self.post.shape != (3, 4) or self.method == 'paper_diagonal' or not np.all(np.isfinite(self.post)):
+                raise ValueError('post must be a finite 3x4 affine map on a linear-RGB model')
 
     def apply(self, rgb: np.ndarray) -> np.ndarray:
         """sRGB (..., 3) in [0, 1] -> corrected sRGB in [0, 1]."""
@@ -112,6 +119,8 @@ class ColorModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> 'ColorModel':
+        if not isinstance(d, dict) or 'method' not in d or 'matrix' not in d:
+            raise ValueError(f'a colour model is a mapping with method and matrix, got {d!r:.80}')
         exponents, post = d.get('exponents'), d.get('post')
         return cls(d['method'], np.asarray(d['matrix'], dtype=np.float64),
                    tuple(float(v) for v in exponents) if exponents is not None else None,

@@ -205,7 +205,10 @@ def camera_info_to_model(msg: CameraInfo) -> CameraModel:
     d = list(msg.d) or [0.0] * 5
     if len(d) not in DISTORTION_MODELS:
         raise MessageConversionError(f'camera_info has {len(d)} distortion coefficients, expected 5 or 8')
-    return CameraModel(int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(d))
+    try:
+        return CameraModel(int(msg.width), int(msg.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(d))
+    except ValueError as e:
+        raise MessageConversionError(f'unusable camera_info: {e}') from e
 
 
 _XYZRGB_DTYPE = np.dtype({'names': ['x', 'y', 'z', 'rgb'], 'formats': ['<f4'] * 3 + ['<u4'],

@@ -28,11 +28,12 @@ class CameraHealth:
     color_depth_offset_ms: float | None = None   # median colour stamp minus nearest depth stamp
     rig_offset_ms: float | None = None     # latest offset from the other cameras
     drift_ms_per_s: float | None = None    # slope of that offset over the window
+    silent_s: float | None = None          # seconds since its last frame, once past the silence limit
     warnings: list[str] = field(default_factory=list)
 
     @property
     def level(self) -> str:
-        return 'warn' if self.warnings else 'ok'
+        return 'error' if self.silent_s is not None else 'warn' if self.warnings else 'ok'
 
     def to_dict(self) -> dict:
         return {**asdict(self), 'level': self.level}
@@ -58,13 +59,14 @@ class RigHealthReport:
 
 class RigHealth:
     def __init__(self, cameras: list[str], window_s: float = 10.0, drift_warn_ms_per_s: float = 0.2,
-                 min_rate_share: float = 0.9):
+                 min_rate_share: float = 0.9, silent_periods: float = 10.0):
         if not cameras:
             raise ValueError('the rig health monitor needs at least one camera')
         self.cameras = list(cameras)
         self.window_ns = int(window_s * 1e9)
         self.drift_warn = drift_warn_ms_per_s
         self.min_rate_share = min_rate_share
+        self.silent_periods = silent_periods
         self.period = PeriodEstimate()
         self._stamps = {(c, s): deque() for c in self.cameras for s in STREAMS}   # (receive_ns, stamp_ns)
         self._last = {}
@@ -86,8 +88,18 @@ class RigHealth:
         while q and q[-1][1] - q[0][1] > self.window_ns:
             q.popleft()
 
-    def report(self) -> RigHealthReport:
+    def silent(self, now_ns: int) -> dict[str, float]:
+        """Cameras with no frame (either stream) for ``silent_periods`` frame periods, and for how
+        many seconds; ``now_ns`` on the clock ``add`` was given receive times on. A camera never
+        heard from counts from the first frame of any camera."""
+        last = {cam: max(self._stamps[(cam, s)][-1][0] for s in STREAMS if self._stamps[(cam, s)])
+                for cam in self.cameras if any(self._stamps[(cam, s)] for s in STREAMS)}
+        return silent_cameras(self.cameras, last, now_ns, self.period.period_ns, self.silent_periods)
+
+    def report(self, now_ns: int | None = None) -> RigHealthReport:
+        """``now_ns`` (receive clock): also name the cameras that have gone silent."""
         period = self.period.period_ns or DEFAULT_PERIOD_NS
+        silent = self.silent(now_ns) if now_ns is not None else {}
         tolerance = tolerance_for_period(period)
         depth = {c: np.array([s for _, s in self._stamps[(c, 'depth')]], dtype=np.int64) for c in self.cameras}
         out = {}
@@ -100,6 +112,9 @@ class RigHealth:
             if len(colors) and len(depth[cam]):
                 h.color_depth_offset_ms = float(np.median(colors - _nearest(depth[cam], colors))) / 1e6
             self._rig_offset(cam, depth, h)
+            if cam in silent:
+                h.silent_s = round(silent[cam], 2)
+                h.warnings.append(f'silent for {silent[cam]:.1f} s: no frames (camera, driver or filter down?)')
             self._warn(h, period, tolerance)
             out[cam] = h
         spread = _spreads(depth)
@@ -136,6 +151,23 @@ class RigHealth:
                               'clock)')
         elif h.rig_offset_ms is not None and abs(h.rig_offset_ms) * 1e6 > tolerance:
             h.warnings.append(f'{h.rig_offset_ms:+.1f} ms from the rig: its frames no longer join the frame sets')
+
+
+def silent_cameras(cameras: list[str], last_ns: dict[str, int], now_ns: int, period_ns: int | None,
+                   periods: float = 10.0, min_s: float = 0.5) -> dict[str, float]:
+    """{camera: seconds silent} for the cameras whose last frame (``last_ns``, receive clock) is
+    more than ``periods`` frame periods (and ``min_s``) before ``now_ns``. A camera never heard
+    from counts from the first frame of any camera; before any frame, none is silent."""
+    if not last_ns:
+        return {}
+    limit = max(periods * (period_ns or DEFAULT_PERIOD_NS), min_s * 1e9)
+    first = min(last_ns.values())
+    out = {}
+    for cam in cameras:
+        quiet = now_ns - last_ns.get(cam, first)
+        if quiet > limit:
+            out[cam] = quiet / 1e9
+    return out
 
 
 def _nearest(sorted_stamps: np.ndarray, queries: np.ndarray) -> np.ndarray:

@@ -92,3 +92,17 @@ def convergence_point(poses: list[np.ndarray]) -> np.ndarray:
     if len(poses) < 2 or np.linalg.cond(A) > 1e6:
         raise ValueError('cameras aimed from one direction have no convergence point')
     return np.linalg.solve(A, b)
+
+
+def rigid_transform(value, what: str) -> np.ndarray:
+    """``value`` (nested lists) as a finite 4x4 rigid transform, or a ValueError naming ``what``."""
+    try:
+        T = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f'{what}: not a 4x4 matrix of numbers ({e})') from e
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f'{what}: expected a finite 4x4 matrix, got shape {T.shape}')
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 or not np.allclose(T[3], (0, 0, 0, 1)):
+        raise ValueError(f'{what}: not a rigid transform (rotation and translation)')
+    return T

@@ -16,7 +16,7 @@ import numpy as np
 import yaml
 
 from .camera import K4A_COLOR_MODES, K4A_DEPTH_MODES, CameraModel, camera_from_k4a
-from .poses import make_transform, matrix_from_list, matrix_to_list
+from .poses import make_transform, matrix_to_list, rigid_transform
 
 RIG_VERSION = 1
 
@@ -43,8 +43,20 @@ class RigCamera:
 
     @classmethod
     def from_dict(cls, d: dict) -> 'RigCamera':
-        return cls(str(d['name']), CameraModel.from_dict(d['color']), CameraModel.from_dict(d['depth']),
-                   matrix_from_list(d['T_color_depth']), str(d.get('serial', '')))
+        """Checked: a ValueError names the camera and the field that is wrong."""
+        if not isinstance(d, dict) or not d.get('name'):
+            raise ValueError(f'rig camera: expected a mapping with a name, got {d!r:.80}')
+        name = str(d['name'])
+        models = {}
+        for stream in ('color', 'depth'):
+            try:
+                models[stream] = CameraModel.from_dict(d[stream])
+            except KeyError as e:
+                raise ValueError(f'rig camera {name}: no {stream} camera model') from e
+            except ValueError as e:
+                raise ValueError(f'rig camera {name}: {stream}: {e}') from e
+        T = rigid_transform(d.get('T_color_depth', np.eye(4).tolist()), f'rig camera {name}: T_color_depth')
+        return cls(name, models['color'], models['depth'], T, str(d.get('serial') or ''))
 
 
 @dataclass
@@ -73,11 +85,15 @@ class Rig:
 
     @classmethod
     def from_yaml(cls, text: str) -> 'Rig':
-        d = yaml.safe_load(text)
-        if not isinstance(d, dict) or 'cameras' not in d:
+        try:
+            d = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            raise ValueError(f'rig description is not YAML: {e}') from e
+        if not isinstance(d, dict) or not isinstance(d.get('cameras'), list) or not d['cameras']:
             raise ValueError('rig YAML must be a mapping with a "cameras" list')
-        if int(d.get('version', RIG_VERSION)) > RIG_VERSION:
-            raise ValueError(f'rig YAML version {d["version"]} is newer than this volcap ({RIG_VERSION})')
+        version = d.get('version', RIG_VERSION)
+        if not isinstance(version, int) or version > RIG_VERSION:
+            raise ValueError(f'rig YAML version {version!r} is not one this volcap reads (newer than {RIG_VERSION}?)')
         return cls([RigCamera.from_dict(c) for c in d['cameras']], str(d.get('name', 'volcap')))
 
 

@@ -1,14 +1,18 @@
 """Process set-up for moving 28 MB frame sets: the shipped Fast DDS profile and malloc tuning.
 
 Call ``configure()`` before ``rclpy.init()``. An explicit ``FASTRTPS_DEFAULT_PROFILES_FILE`` in
-the environment wins; ``VOLCAP_STOCK_DDS=1`` keeps Fast DDS's built-in transports (for
-comparisons such as bench/transport.py).
+the environment wins; ``VOLCAP_TRANSPORT=multihost`` selects the profile for a graph spread over
+hosts (``fastdds_multihost.xml``: large UDP socket buffers, docs/multihost.md);
+``VOLCAP_STOCK_DDS=1`` keeps Fast DDS's built-in transports (for comparisons such as
+bench/transport.py).
 """
 import ctypes
 import os
 from pathlib import Path
 
 PROFILE = Path(__file__).with_name('config') / 'fastdds_volcap.xml'
+MULTIHOST_PROFILE = Path(__file__).with_name('config') / 'fastdds_multihost.xml'
+PROFILES = {'single': PROFILE, 'multihost': MULTIHOST_PROFILE}
 PROFILE_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 
@@ -19,7 +23,10 @@ def configure(environ=os.environ) -> str | None:
     if environ.get('VOLCAP_STOCK_DDS') == '1':
         environ.pop(PROFILE_ENV, None)
         return None
-    environ.setdefault(PROFILE_ENV, str(PROFILE))
+    choice = environ.get('VOLCAP_TRANSPORT', 'single')
+    if choice not in PROFILES:
+        raise ValueError(f'VOLCAP_TRANSPORT must be one of {sorted(PROFILES)}, got {choice!r}')
+    environ.setdefault(PROFILE_ENV, str(PROFILES[choice]))
     return environ[PROFILE_ENV]
 
 

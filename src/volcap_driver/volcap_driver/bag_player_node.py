@@ -27,6 +27,7 @@ from .playback import (
     BagPlayerConfig,
     LateSetFilter,
     Schedule,
+    SetRestamper,
     output_topic,
     parse_counts,
     parse_remaps,
@@ -112,6 +113,7 @@ class BagPlayer(Node):
         period = PeriodEstimate()
         next_pass_ns = target = time.time_ns()
         late = LateSetFilter(int(self.cfg.max_lag_ms * 1e6))
+        restamper = SetRestamper()
         while not self._stop.is_set():
             # A pass that starts late keeps to the frame grid of the last (whole periods later).
             frame_ns = int((period.period_ns or DEFAULT_PERIOD_NS) / rate)
@@ -133,7 +135,8 @@ class BagPlayer(Node):
                     continue
                 data = msg.data
                 if self.restamp and msg.msgtype in HEADER_FIRST_TYPES:
-                    data = restamp_cdr(data, target)
+                    data = restamp_cdr(data, restamper.stamp(msg.stamp_ns, target,
+                                                             (period.period_ns or DEFAULT_PERIOD_NS) // 2))
                 pubs[msg.topic].publish(data)
                 self.published += 1
                 if time.monotonic() - last_report > 1.0:
@@ -156,7 +159,13 @@ class BagPlayer(Node):
         if unacknowledged:
             self.diagnostics.report('warn', f'{len(unacknowledged)} topics not acknowledged by every reliable '
                                             f'subscriber at the end, e.g. {unacknowledged[0]}')
-        self.diagnostics.report('ok', f'finished: {self.published} messages published', published=self.published)
+        if reader.losses:
+            self.diagnostics.report('warn', f'finished: {self.published} messages published; damaged bag '
+                                            f'{self.bag}: {reader.damage}', published=self.published,
+                                    damaged_parts=len(reader.losses))
+            self.get_logger().warning(f'damaged bag, played what was readable: {reader.damage}')
+        else:
+            self.diagnostics.report('ok', f'finished: {self.published} messages published', published=self.published)
         self.get_logger().info(f'finished: {self.published} messages published')
 
 

@@ -71,8 +71,11 @@ class DepthFilter(Node):
         background = None
         path = self.node_cfg.background_file
         if path and Path(path).exists():
-            background = BackgroundModel.load(path)
-            self.get_logger().info(f'loaded a {background.frames}-frame clean plate from {path}')
+            try:
+                background = BackgroundModel.load(path)
+                self.get_logger().info(f'loaded a {background.frames}-frame clean plate from {path}')
+            except ValueError as e:      # keep running: a new clean plate is learnt, the file is kept
+                self.diagnostics.report('error', f'{e}; learning a new clean plate (the file stays until then)')
         self.session = CleanPlateSession(self.camera, cfg, decode,
                                          (self.node_cfg.output_width, self.node_cfg.output_height),
                                          self.node_cfg.max_held_frames, background, self.node_cfg.output_scale)

@@ -10,6 +10,7 @@ colour decision (a shirt the colour of the wall, a pedestal the grey of the floo
 """
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 
 import cv2
@@ -119,10 +120,21 @@ class BackgroundModel:
 
     @classmethod
     def load(cls, path: str) -> 'BackgroundModel':
+        """A saved clean plate, checked; a ValueError says what is wrong with the file."""
         model = cls()
-        with np.load(path) as npz:
-            model._n, model._sum, model._sum2 = int(npz['n']), npz['sum'], npz['sum2']
-            model._depth_far = npz['depth'] if npz['depth'].size else None
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                n, total, total2, depth = int(npz['n']), npz['sum'], npz['sum2'], npz['depth']
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise ValueError(f'clean plate {path} is unreadable: {type(e).__name__}: {e}') from e
+        if n < 1 or total.ndim != 3 or total.shape[2] != 3 or total2.shape != total.shape \
+                or not np.all(np.isfinite(total)) or not np.all(np.isfinite(total2)):
+            raise ValueError(f'clean plate {path}: expected colour sums of shape (H, W, 3) over >= 1 frames, got '
+                             f'{total.shape} over {n}')
+        if depth.size and (depth.ndim != 2 or not np.all(np.isfinite(depth))):
+            raise ValueError(f'clean plate {path}: expected a finite (H, W) depth, got {depth.shape}')
+        model._n, model._sum, model._sum2 = n, total, total2
+        model._depth_far = depth if depth.size else None
         return model
 
 

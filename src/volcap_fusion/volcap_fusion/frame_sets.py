@@ -33,6 +33,8 @@ class FusionNodeConfig:
     marker_max_triangles: int = setting(150_000, 'the mesh marker is decimated above this', 1000, 10_000_000)
     output_dir: str = setting('', 'write the sequence (PLY + GLB per time step) here', read_only=True)
     output_formats: tuple[str, ...] = setting(('ply', 'glb'), 'sequence file formats', read_only=True)
+    silent_periods: float = setting(10.0, 'a camera with no frame for this many frame periods is reported '
+                                    'silent (ERROR) until it returns', 2.0, 1000.0)
 
 
 @dataclass
@@ -83,3 +85,30 @@ def fused_phase(announced: str | None, phases: tuple[str, ...]) -> bool:
     """Whether a frame set captured while ``announced`` was the session phase is fused (no phase
     announced, or no phase filter: every set)."""
     return announced is None or not phases or announced in phases
+
+
+class PhaseTimeline:
+    """The session phase each frame set was captured in. ``/volcap/phase`` carries no stamp, but
+    it is sent in order with the frames (a player sends it at its place in the bag; a rig's
+    session tool between frames): frames stamped up to the newest one received before a phase
+    change belong to the phase before it. Deciding at emission time instead would give a set that
+    waited for its late cameras the phase that began meanwhile."""
+
+    def __init__(self, keep: int = 16):
+        self._changes: list[tuple[int, str]] = []     # (newest frame stamp seen at the change, phase)
+        self._keep = keep
+        self.newest_ns = -1
+
+    def frame(self, stamp_ns: int) -> None:
+        self.newest_ns = max(self.newest_ns, stamp_ns)
+
+    def change(self, phase: str) -> None:
+        self._changes = (self._changes + [(self.newest_ns, phase)])[-self._keep:]
+
+    def at(self, stamp_ns: int) -> str | None:
+        """The phase of a frame set with this stamp (None: none announced before it)."""
+        phase = None
+        for boundary, name in self._changes:
+            if stamp_ns > boundary:
+                phase = name
+        return phase

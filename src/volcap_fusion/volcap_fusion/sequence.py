@@ -15,8 +15,10 @@ Every file is written atomically: a player polling the folder never reads half a
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
+import shutil
 import tempfile
 from collections import deque
 from pathlib import Path
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from volcap_core.files import atomic_write, write_json
+from volcap_core.files import FILE_MODE, append_line, atomic_write, publish, write_failure, write_json
 from volcap_core.poses import matrix_from_list, matrix_to_list
 
 from .glb import EncodeConfig, EncodedFrame, encode
@@ -36,17 +38,58 @@ SEQUENCE_VERSION = 2
 RATE_WINDOW = 900           # stamps the manifest's frame rate is measured over (30 s at 30 fps)
 
 
+PLY_HEADER_MAX = 4096
+_PLY_TYPE_BYTES = {'char': 1, 'uchar': 1, 'int8': 1, 'uint8': 1, 'short': 2, 'ushort': 2, 'int16': 2,
+                   'uint16': 2, 'int': 4, 'uint': 4, 'int32': 4, 'uint32': 4, 'float': 4, 'float32': 4,
+                   'double': 8, 'float64': 8}
+
+
+def binary_ply_size(path: str | Path, list_length: int = 3) -> int:
+    """The size a binary PLY's header says the file has (lists taken as ``list_length`` long)."""
+    with open(path, 'rb') as f:
+        header = b''
+        while not header.endswith(b'end_header\n'):
+            line = f.readline()
+            if not line:
+                raise ValueError(f'{path}: no PLY header')
+            header += line
+    size, count = len(header), 0
+    for line in header.decode('ascii', 'replace').splitlines():
+        words = line.split()
+        if words[:1] == ['element']:
+            count = int(words[2])
+        elif words[:2] == ['property', 'list']:
+            size += count * (_PLY_TYPE_BYTES[words[2]] + list_length * _PLY_TYPE_BYTES[words[3]])
+        elif words[:1] == ['property']:
+            size += count * _PLY_TYPE_BYTES[words[1]]
+    return size
+
+
 def write_ply(path: str | Path, model: FusedModel) -> Path:
-    """Binary PLY with vertex colours, written atomically (Open3D picks the format by suffix)."""
+    """Binary PLY with vertex colours, whole or absent. Open3D (which picks the format by suffix)
+    reports success on a short write to a full disk and keeps the file open, its space held, until
+    the process ends: so a PLY that cannot fit is refused before Open3D starts, and the size
+    written is checked against the header after."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
+    needed = len(model.vertices) * 15 + len(model.triangles) * 13 + PLY_HEADER_MAX
+    if shutil.disk_usage(target.parent).free < needed:
+        raise write_failure(target, OSError(errno.ENOSPC, 'no space'))
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f'.{target.stem}.', suffix='.ply')
     os.close(fd)
     try:
-        if not o3d.io.write_triangle_mesh(tmp, model.legacy_mesh(), write_ascii=False, compressed=False,
-                                          write_vertex_normals=False):
-            raise OSError(f'could not write {target}')
-        os.replace(tmp, target)
+        ok = o3d.io.write_triangle_mesh(tmp, model.legacy_mesh(), write_ascii=False, compressed=False,
+                                        write_vertex_normals=False)
+        written = os.path.getsize(tmp)
+        if not ok or written != binary_ply_size(tmp):
+            raise OSError(errno.ENOSPC if written else errno.EIO, f'short PLY write ({written} bytes)')
+        with open(tmp, 'rb') as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, FILE_MODE)
+        publish(tmp, target)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        raise write_failure(target, e) from e
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -85,10 +128,11 @@ class SequenceWriter:
         self.last_stamp: int | None = None
         self.recent_stamps: deque[int] = deque(maxlen=RATE_WINDOW)     # bounded: the cost per frame stays flat
         self.bytes = 0
+        self.missing: dict[str, int] = {}       # camera -> frames written without it
+        self.frames_short = 0
 
     def _append(self, doc: dict) -> None:
-        with open(self.folder / MANIFEST, 'a') as f:
-            f.write(json.dumps(doc) + '\n')
+        append_line(self.folder / MANIFEST, json.dumps(doc))
 
     def _header(self, frame: str, T_world_frame: np.ndarray) -> None:
         self._append({'volcap_sequence': SEQUENCE_VERSION, 'frame': frame,
@@ -110,15 +154,26 @@ class SequenceWriter:
         entry = {'index': index, 'stamp_ns': int(stamp_ns), 'cameras': list(model.cameras),
                  'missing': list(missing or []), 'vertices': int(len(model.vertices)),
                  'triangles': int(len(model.triangles))}
-        if 'ply' in self.formats:
-            entry['ply'] = write_ply(self.folder / f'{index:06d}.ply', model).name
+        written = []
+        try:      # the frame's files, then its line: the index lists only frames whose files are whole
+            if 'ply' in self.formats:
+                written.append(write_ply(self.folder / f'{index:06d}.ply', model))
+                entry['ply'] = written[-1].name
+            if 'glb' in self.formats:
+                encoded = encoded or encode(model, self.encoding, stamp_ns, index, frame)
+                written.append(atomic_write(self.folder / f'{index:06d}.glb', lambda f: f.write(encoded.data)))
+                entry.update(glb=written[-1].name, glb_bytes=len(encoded.data), glb_triangles=encoded.triangles,
+                             encode_ms=round(sum(encoded.timings_ms.values()), 2))
+            self._append(entry)
+        except BaseException:
+            for path in written:          # no orphan files for a frame the index does not list
+                path.unlink(missing_ok=True)
+            raise
         if 'glb' in self.formats:
-            encoded = encoded or encode(model, self.encoding, stamp_ns, index, frame)
-            entry['glb'] = atomic_write(self.folder / f'{index:06d}.glb', lambda f: f.write(encoded.data)).name
-            entry.update(glb_bytes=len(encoded.data), glb_triangles=encoded.triangles,
-                         encode_ms=round(sum(encoded.timings_ms.values()), 2))
             self.bytes += len(encoded.data)
-        self._append(entry)
+        self.frames_short += bool(missing)
+        for cam in missing or []:
+            self.missing[cam] = self.missing.get(cam, 0) + 1
         self.written += 1
         self.first_stamp = int(stamp_ns) if self.first_stamp is None else self.first_stamp
         self.last_stamp = int(stamp_ns)
@@ -136,6 +191,7 @@ class SequenceWriter:
             'volcap_sequence': SEQUENCE_VERSION, 'frames': self.written, 'frame_rate': rate,
             'first_stamp_ns': str(self.first_stamp) if self.written else None,
             'duration_s': round(duration, 3), 'frame': self.frame[0] if self.frame else None,
+            'frames_short_of_cameras': self.frames_short, 'frames_missing_per_camera': dict(self.missing),
             'index': MANIFEST, 'glb_encoding': self.encoding.encoding if 'glb' in self.formats else None,
             'mean_glb_bytes': round(self.bytes / self.written) if self.written and 'glb' in self.formats else None,
             'mbit_per_s': round(self.bytes * 8 / self.written * rate / 1e6, 2) if self.written and rate and

@@ -32,7 +32,6 @@ import time
 from collections import deque
 
 import numpy as np
-import yaml
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import String
@@ -51,12 +50,13 @@ from volcap_core.conversions import (
     points_to_pointcloud2,
     stamp_to_ns,
 )
+from volcap_core.health import silent_cameras
 from volcap_core.poses import invert
 from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
-from .frame_sets import FusionNodeConfig, frame_set_views, fused_cameras, fused_phase
+from .frame_sets import FusionNodeConfig, PhaseTimeline, frame_set_views, fused_cameras, fused_phase
 from .glb import EncodeConfig, encode, simplify
 from .sequence import SequenceWriter, frame_rate
 from .tsdf import CameraView, FusionConfig, TsdfFusion, pick_device
@@ -78,6 +78,9 @@ class TsdfFusionNode(Node):
         output_dir = self.node_cfg.output_dir
         formats = tuple(f for f in self.node_cfg.output_formats if f)
         self.writer = SequenceWriter(output_dir, formats, self.encoding) if output_dir else None
+        self.writer_failure = ''          # why the sequence stopped being written (a full disk)
+        self.arrivals: dict[str, int] = {}      # camera -> monotonic ns of its last image
+        self.short_of: list[str] = []            # cameras missing from the last fused frame set
         self.glb_stamps: deque[int] = deque(maxlen=64)
 
         self.diagnostics = Diagnostics(self, 'tsdf fusion')
@@ -86,7 +89,7 @@ class TsdfFusionNode(Node):
         self.sync: FrameSetSynchronizer | None = None
         self.infos: dict[tuple[str, str], CameraInfo] = {}
         self.camera_subscriptions = []
-        self.phase = None
+        self.phases = PhaseTimeline()
         self.stats = {'fused': 0, 'fused_complete': 0, 'incomplete': 0, 'skipped': 0, 'empty': 0, 'out_of_order': 0}
         self.newest_submitted = -1
         self.latency_ms: deque[tuple[float, float]] = deque(maxlen=256)    # (monotonic s, ms)
@@ -113,8 +116,9 @@ class TsdfFusionNode(Node):
     def _on_calibration(self, msg: String) -> None:
         try:
             calibration = Calibration.from_yaml(msg.data)
-        except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
-            self.diagnostics.report('error', f'unusable calibration: {e}')
+        except ValueError as e:
+            kept = 'keeping the last good one' if self.calibration is not None else 'none yet'
+            self.diagnostics.report('error', f'unusable calibration on /{topics.CALIBRATION} ({kept}): {e}')
             return
         try:
             cameras = fused_cameras(list(calibration.cameras), self.wanted)
@@ -148,10 +152,12 @@ class TsdfFusionNode(Node):
         self.get_logger().info(f'fusing {len(cameras)} cameras: {", ".join(cameras)}')
 
     def _on_phase(self, msg: String) -> None:
-        self.phase = topics.parse_phase(msg.data)
+        self.phases.change(topics.parse_phase(msg.data))
 
     def _on_image(self, camera: str, stream: str, msg: Image) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
+        self.arrivals[camera] = time.monotonic_ns()
+        self.phases.frame(stamp)
         if self.sync is None or not self.admission.admit((camera, stream), stamp):
             return
         self._emit(self.sync.add(camera, stamp, msg, stream=stream, now_ns=time.monotonic_ns()))
@@ -162,7 +168,7 @@ class TsdfFusionNode(Node):
 
     def _emit(self, sets: list[FrameSet]) -> None:
         for fs in sets:
-            if not fused_phase(self.phase, self.node_cfg.phases):
+            if not fused_phase(self.phases.at(fs.stamp_ns), self.node_cfg.phases):
                 continue
             if self.node_cfg.in_order and fs.stamp_ns < self.newest_submitted:
                 self.stats['out_of_order'] += 1
@@ -225,12 +231,30 @@ class TsdfFusionNode(Node):
         if 0 <= latency_ms < 60_000:      # stamps on the rig's clock (live), not a replayed bag's
             self.latency_ms.append((time.monotonic(), latency_ms))
         if self.writer is not None:
-            self.writer.write(model, fs.stamp_ns, plan.missing, frame, invert(T_frame_world), encoded)
+            self._write(model, fs.stamp_ns, plan.missing, frame, invert(T_frame_world), encoded)
+        self.short_of = plan.missing
         self.stats['fused'] += 1
         self.stats['fused_complete'] += not plan.missing
         self.last = {'fusion_ms': round(sum(model.timings_ms.values()), 1),
                      'total_ms': round((time.perf_counter() - t0) * 1000, 1), 'cameras': len(plan.views),
                      'vertices': len(model.vertices), 'triangles': len(model.triangles), **stream}
+
+    def _write(self, model, stamp_ns: int, missing: list[str], frame: str, T_world_frame, encoded) -> None:
+        """One frame into the sequence. A failed write (a full disk) stops the recording, whole up
+        to the last frame, while fusion and the live stream go on."""
+        try:
+            self.writer.write(model, stamp_ns, missing, frame, T_world_frame, encoded)
+        except OSError as e:
+            writer, self.writer = self.writer, None
+            self.writer_failure = (f'recording stopped: {e}; the sequence holds {writer.written} whole frames '
+                                   f'in {writer.folder}')
+            try:
+                writer.close()
+            except OSError as close_error:
+                self.writer_failure += f' (its manifest.json is stale: {close_error})'
+            self.get_logger().error(self.writer_failure)
+            self.diagnostics.report('error', self.writer_failure)
+            self.exit_code = 1             # the take is short: say so when the node stops
 
     def _on_fusion_error(self, item, e: Exception) -> None:
         self.diagnostics.report('error', f'frame set {item[0].stamp_ns} not fused: {type(e).__name__}: {e}')
@@ -251,8 +275,21 @@ class TsdfFusionNode(Node):
             self.diagnostics.report('warn', f'waiting for the calibration on /{topics.CALIBRATION}')
             return
         w = self.worker
-        level, message = ('warn', 'empty stage: the last frame set had no depth inside the capture box') \
-            if self.last.get('vertices') == 0 else ('ok', f'{self.stats["fused"]} frame sets fused')
+        period = self.sync.period.period_ns if self.sync is not None else None
+        silent = silent_cameras(self.cameras, self.arrivals, time.monotonic_ns(), period,
+                                self.node_cfg.silent_periods)
+        fused = f'{self.stats["fused"]} frame sets fused'
+        errors, warnings = [], []
+        if silent:
+            errors.append('silent cameras (no frames): ' + ', '.join(f'{c} for {s:.1f} s' for c, s in silent.items()))
+        elif self.short_of:
+            warnings.append(f'running short of cameras: the last frame set lacked {", ".join(self.short_of)}')
+        if self.writer_failure:
+            errors.append(self.writer_failure)
+        if self.last.get('vertices') == 0:
+            warnings.append('empty stage: the last frame set had no depth inside the capture box')
+        level = 'error' if errors else 'warn' if warnings else 'ok'
+        message = '; '.join(errors + warnings + [fused])
         latency = {}
         recent = [ms for t, ms in self.latency_ms if t > time.monotonic() - LATENCY_WINDOW_S]
         if recent:
@@ -262,6 +299,7 @@ class TsdfFusionNode(Node):
                                 dropped=w.dropped + self.stats['skipped'] + self.stats['out_of_order'],
                                 queue_dropped=w.dropped, errors=w.errors,
                                 work_s=round(self.work_s, 3), **self.stats, **self.last, **latency,
+                                silent_cameras=','.join(silent), short_of=','.join(self.short_of),
                                 **self.admission.counts())
 
     def destroy_node(self):

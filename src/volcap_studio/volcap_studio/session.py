@@ -1,7 +1,7 @@
 """Write a synthetic studio session as a rosbag2 MCAP bag plus its ground-truth sidecar, and read
 the sidecar back.
 
-Layout of ``DIR``: ``metadata.yaml`` and ``DIR.mcap`` (the bag), ``ground_truth/ground_truth.yaml``
+Layout of ``DIR``: ``metadata.yaml`` and ``DIR_0.mcap`` (the bag), ``ground_truth/ground_truth.yaml``
 (rig, T_world_color per camera, colour responses, ToF model, board and subject poses, frame
 stamps), ``ground_truth/frames/NNNNNN.npz`` (per camera: clean depth, flying / speckle / dropped
 masks and subject masks), ``ground_truth/subject.ply`` and ``ground_truth/preview.png`` (every
