@@ -247,6 +247,10 @@ def summarise(sent: dict, arrivals: dict, marks: dict) -> dict:
         out['link_down_s'] = (up - down) / 1e9
         out['sets_during_drop_delivered'] = sum(1 for s in stamps if down <= s < up)
         out['first_frame_after_up_s'] = (after[0] - up) / 1e9 if after else None
+        fresh = sorted(r for v in arrivals.values() for r, s in v if s >= up)
+        out['first_new_frame_after_up_s'] = (fresh[0] - up) / 1e9 if fresh else None
+        out['sets_lost'] = sent['sent_sets'] - len(stamps)
+        out['seconds_of_sets_lost'] = out['sets_lost'] / sent['sent_fps']
         span_before = (before[-1] - before[0]) / 1e9 if len(before) > 1 else None
         late = [s for s in stamps if s >= up + 2e9]
         span_after = (late[-1] - late[0]) / 1e9 if len(late) > 1 else None
@@ -309,7 +313,9 @@ def main() -> int:
         def report(r):
             extra = ''
             if 'link_down_s' in r:
-                extra = (f'; link down {r["link_down_s"]:.1f} s: first frame {r["first_frame_after_up_s"]} s after up, '
+                extra = (f'; link down {r["link_down_s"]:.1f} s: {r["sets_lost"]} sets lost '
+                         f'({r["seconds_of_sets_lost"]:.1f} s of capture), first frame {r["first_frame_after_up_s"]:.2f} s '
+                         f'after up, first one captured after up {r["first_new_frame_after_up_s"]:.2f} s after up, '
                          f'{r["sets_per_s_before"] or 0:.1f} sets/s before, '
                          f'{r["sets_per_s_after_recovery"] or 0:.1f} after')
             print(f'{r["profile"]:<10} {r["offered_fps"]:>5.0f} fps offered ({r["sent_fps"]:.1f} sent)'

@@ -78,16 +78,18 @@ def time_writers(folder: Path, seconds: int, messages, rounds: int) -> list[dict
 
 
 def write_raw(path: Path, seconds: int, messages) -> int:
-    """The disk alone: each frame set's bytes in one write call, one fsync at the end."""
+    """The disk alone: the same bytes in 8 MB writes (the chunk size; one 35 MB write per frame
+    set measured 1.2-3x slower here), one fsync at the end."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    frame_set = b''.join(data for _, _, data in messages)
+    frame_set = memoryview(b''.join(data for _, _, data in messages))
     size = 0
     for _ in range(seconds * FPS):
-        view = memoryview(frame_set)
-        while view:
-            done = os.write(fd, view)
-            view = view[done:]
-            size += done
+        for at in range(0, len(frame_set), 8 << 20):
+            view = frame_set[at:at + (8 << 20)]
+            while view:
+                done = os.write(fd, view)
+                view = view[done:]
+                size += done
     os.fsync(fd)
     os.close(fd)
     return size
@@ -136,7 +138,7 @@ def write_rosbags(path: Path, seconds: int, messages) -> int:
     return mcap.stat().st_size
 
 
-WRITERS = {'disk limit (writev + fsync)': write_raw, 'volcap BagWriter (CRC chunks)': write_volcap,
+WRITERS = {'disk limit (8 MB writes + fsync)': write_raw, 'volcap BagWriter (CRC chunks)': write_volcap,
            'mcap library Writer (CRC chunks)': write_mcap_library, 'rosbags Writer (no CRC)': write_rosbags}
 
 

@@ -49,8 +49,8 @@ class RecorderConfig:
                                           read_only=True)
     chunk_size: int = setting(8 << 20, 'MCAP chunk size in bytes: a crash loses at most the chunk being filled',
                               1, 1 << 30, read_only=True)
-    max_queue_bytes: int = setting(1 << 30, 'messages waiting for the disk, in bytes; beyond, new messages are '
-                                   'dropped and counted', 1 << 20, 1 << 40, read_only=True)
+    max_queue_bytes: int = setting(256 << 20, 'messages waiting for the disk, in bytes (a crash loses them); '
+                                   'beyond, new messages are dropped and counted', 1 << 20, 1 << 40, read_only=True)
 
 
 class Recorder(Node):
