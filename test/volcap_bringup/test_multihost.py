@@ -73,13 +73,13 @@ def test_corrected_colour_crosses_hosts_and_survives_a_link_drop(studio_bag, hos
     env.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
     capture = ('ip', 'netns', 'exec', names['capture'])
     topic = f'/cam0/{topics.COLOR_CORRECTED}'
-    receiver = subprocess.Popen(['ip', 'netns', 'exec', names['fusion'], sys.executable, '-c', RECEIVER, topic, '40'],
+    receiver = subprocess.Popen(['ip', 'netns', 'exec', names['fusion'], sys.executable, '-c', RECEIVER, topic, '28'],
                                 env=env, stdout=subprocess.PIPE, text=True)
     procs.append(start_node('volcap_color', 'color_corrector', {}, namespace='cam0', env=env, wrapper=capture))
     procs.append(start_node('volcap_driver', 'bag_player', {
         'bag': str(studio_bag), 'topics': [f'cam0/{topics.COLOR_IMAGE}'], 'loop': True, 'restamp': True,
-        'rate': 0.5, 'exit_when_done': False, 'wait_for_subscribers': 20.0}, env=env, wrapper=capture))
-    time.sleep(15)
+        'exit_when_done': False, 'wait_for_subscribers': 20.0}, env=env, wrapper=capture))
+    time.sleep(12)
     down = time.time_ns()
     link(False)
     time.sleep(2)

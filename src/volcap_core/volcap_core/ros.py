@@ -4,7 +4,9 @@ subscription of either transport, a ``/tf_static`` listener and the live admissi
 from __future__ import annotations
 
 import os
+import signal
 import struct
+import threading
 import time
 from typing import Callable
 
@@ -17,6 +19,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import String
 from tf2_msgs.msg import TFMessage
@@ -40,17 +43,30 @@ def make_executor():
 
 def run_node(factory: Callable[[], Node], args=None) -> int:
     """Create the node and spin it until Ctrl-C / SIGTERM or until it shuts the context down
-    itself; then clean up. Returns the node's ``exit_code`` (0 unless it set one)."""
+    itself; then clean up. Returns the node's ``exit_code`` (0 unless it set one).
+
+    Once spinning, the signals only set a flag the spin loop reads: rclpy's own handler shuts the
+    context down at once and raises KeyboardInterrupt a moment later, at the next Python
+    instruction, which could land in the clean-up and kill the process by SIGINT (seen as exit
+    -2). While the node is still starting, a signal interrupts the start."""
     transport.configure()
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stopping, spinning = threading.Event(), threading.Event()
+
+    def on_signal(*_):
+        stopping.set()
+        if not spinning.is_set():
+            raise KeyboardInterrupt
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     node = None
     executor = None
     try:
         node = factory()
         executor = make_executor()
         executor.add_node(node)
-        # Short spins: Python's SIGINT/SIGTERM handling runs between them (not inside C++).
-        while node.context.ok():
+        spinning.set()
+        # Short spins: the signal flag is read between them (not inside C++).
+        while node.context.ok() and not stopping.is_set():
             executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -58,6 +74,7 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
         rclpy.logging.get_logger('volcap').fatal(f'cannot start: {e}')
         return 2
     finally:
+        spinning.set()                   # from here on a signal only sets the flag
         if executor is not None:
             executor.shutdown()
         if node is not None:
@@ -65,7 +82,9 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
         try:
             rclpy.try_shutdown()
         except RCLError:
-            pass   # the SIGINT/SIGTERM handler shut the context down between the check and ours
+            pass
+        for s, handler in previous.items():
+            signal.signal(s, handler)
     return getattr(node, 'exit_code', 0)  # 0 too when interrupted while starting
 
 
