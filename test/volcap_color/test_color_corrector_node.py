@@ -11,7 +11,7 @@ from std_msgs.msg import String
 from volcap_bringup.processes import start_node, stop
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration, CameraCalibration
-from volcap_core.conversions import image_to_numpy, numpy_to_image
+from volcap_core.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
 from volcap_studio.session import GroundTruth
 
 pytestmark = pytest.mark.ros
@@ -64,16 +64,17 @@ def test_new_calibration_is_used_without_restart_and_bad_images_are_reported(ros
     stamp = [0]
 
     def level_after(calibration=None, unlike=None, timeout=60):
-        """The output level once it is steady (and differs from ``unlike``)."""
+        """The output level once it is steady (and differs from ``unlike``), from images sent
+        after this call (not one still in flight from before)."""
         if calibration is not None:
             calib_pub.publish(String(data=calibration.to_yaml()))
-        seen = []
+        seen, since = [], stamp[0]
 
         def changed():
             stamp[0] += 10_000_000
             image_pub.publish(numpy_to_image(grey, 'rgb8', stamp[0], 'f'))
-            got = probe.got[f'/{cam}/{topics.COLOR_CORRECTED}']
-            seen.append(int(image_to_numpy(got[-1][1])[0, 0, 0]) if got else None)
+            got = [m for _, m in probe.got[f'/{cam}/{topics.COLOR_CORRECTED}'] if stamp_to_ns(m.header.stamp) > since]
+            seen.append(int(image_to_numpy(got[-1])[0, 0, 0]) if got else None)
             return (len(seen) > 5 and seen[-1] is not None and seen[-1] == seen[-3] == seen[-5]
                     and seen[-1] != unlike)
         assert probe.spin_until(changed, timeout)
@@ -105,7 +106,6 @@ def test_new_calibration_is_used_without_restart_and_bad_images_are_reported(ros
             assert level_after() == brighter
         # ... and a corrector started while the bad one is latched comes up and passes images through.
         assert stop(procs.pop()) == 0
-        probe.got[f'/{cam}/{topics.COLOR_CORRECTED}'].clear()
         procs.append(start_node('volcap_color', 'color_corrector', {}, namespace=cam))
         assert level_after() == 128
         assert procs[-1].poll() is None
