@@ -61,7 +61,7 @@ def test_eval_color_and_color_fit_end_to_end(studio_bag, tmp_path, gt_calibratio
     present = set(report['methods'])
     assert present | set(report["skipped"]) == set(METHODS) and set(report["methods_all_pairs"]) == present
     for name, s in report['methods'].items():
-        assert set(s) == keys and s['pairs'] >= 2, name
+        assert keys <= set(s) and s['pairs'] >= 2 and s['chroma_after'] is not None, name
     original, ours = report['methods']['original'], report['methods']['volcap_chart_free']
     assert ours['de2000_mean'] < 0.6 * original['de2000_mean'] and ours['psnr_mean'] > original['psnr_mean'] + 3
     assert (tmp_path / 'fig' / 'colour_methods.png').stat().st_size > 10_000

@@ -26,6 +26,10 @@ def cmd_calibrate(args) -> int:
         print(f'calibration failed, {args.out} left as it was: {e}')
         return 1
     print('\n'.join(report.lines()))
+    if report.outcome.weak and not args.accept_weak:
+        print(f'{args.out} written but flagged weak (exit 3): show the board as advised and calibrate again, '
+              'or pass --accept-weak to use it as it is')
+        return 3
     return 0
 
 
@@ -68,6 +72,8 @@ def add_parsers(sub, eval_sub) -> None:
     c.add_argument('--icp', action='store_true',
                    help='refine the poses by ICP of the subject\'s depth in a capture frame set of the bag')
     c.add_argument('--icp-frame', type=int, default=0, help='which capture frame set ICP uses (default: the first)')
+    c.add_argument('--accept-weak', action='store_true',
+                   help='exit 0 even when a camera\'s predicted pose error exceeds 0.1 deg / 2 mm')
     c.add_argument('--quiet', action='store_true')
     c.set_defaults(func=cmd_calibrate)
 

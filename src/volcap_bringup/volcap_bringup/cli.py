@@ -37,7 +37,8 @@ def cmd_synth(args) -> int:
     from volcap_studio.session import synthesize
     from volcap_studio.studio import SynthConfig
     cfg = SynthConfig(cameras=args.cameras, frames=args.frames, board_poses=args.board_poses,
-                      background_frames=args.background_frames, scene=args.scene, seed=args.seed, fps=args.fps,
+                      board_layout=args.board_layout, background_frames=args.background_frames, scene=args.scene,
+                      seed=args.seed, fps=args.fps,
                       **({'k4a_calibration': args.k4a_calibration} if args.k4a_calibration else {}))
     t0 = time.monotonic()
     summary = synthesize(args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
@@ -246,6 +247,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument('--cameras', type=int, default=8)
     s.add_argument('--frames', type=int, default=10, help='capture frames of the subject')
     s.add_argument('--board-poses', type=int, default=12, help='calibration board poses')
+    s.add_argument('--board-layout', default='sweep', choices=('sweep', 'pairs'),
+                   help='sweep: the board turned through every direction; pairs: held between neighbouring stands')
     s.add_argument('--background-frames', type=int, default=3, help='clean-plate frames (no subject)')
     s.add_argument('--scene', default='person', choices=('person', 'bunny'))
     s.add_argument('--seed', type=int, default=0)

@@ -14,12 +14,30 @@ def _correspondence(args):
 
 def cmd_eval_color(args) -> int:
     from volcap_eval.color import ColorEvalConfig, format_report, run
-    report = run(args.bag, args.calibration, ColorEvalConfig(frames=args.frames, correspondence=_correspondence(args)),
+    report = run(args.bag, args.calibration, ColorEvalConfig(frames=args.frames, correspondence=_correspondence(args),
+                                                             chart_free_model=args.chart_free_model),
                  board_file=args.board, chart=not args.no_chart, neural=args.neural, figures=args.figures,
                  progress=not args.quiet)
     print(format_report(report))
     if 'table1_skipped' in report:
         print(f'chart table left out: {report["table1_skipped"]}')
+    if args.json:
+        write_json(args.json, report)
+        print(f'wrote {args.json}')
+    for f in report.get('figures', []):
+        print(f'wrote {f}')
+    return 0
+
+
+def cmd_eval_color_frames(args) -> int:
+    from volcap_eval.color import ColorEvalConfig, evaluate_frames_color, format_report
+    from volcap_eval.color_figures import write_color_figures
+    report, extras = evaluate_frames_color(args.folder, args.intrinsics, args.views, args.seed,
+                                           ColorEvalConfig(chart_free_model=args.chart_free_model), not args.quiet)
+    if args.figures:
+        report['figures'] = [str(p) for p in write_color_figures(args.figures, report, extras['views'],
+                                                                 extras['mappings'], extras['models'])]
+    print(format_report(report))
     if args.json:
         write_json(args.json, report)
         print(f'wrote {args.json}')
@@ -92,14 +110,30 @@ def add_parsers(sub, eval_sub) -> None:
     e.add_argument('--json', help='write the report here')
     e.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
     e.add_argument('--no-chart', action='store_true', help='leave out the chart methods and table')
+    e.add_argument('--chart-free-model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'),
+                   help='model family of volcap_chart_free (auto: chosen per rig on held-out correspondences)')
     e.add_argument('--neural', help='a volcap harmonise output folder: score its networks (neural) and live '
                                     'form (neural_live) too')
     e.set_defaults(func=cmd_eval_color)
 
+    r = eval_sub.add_parser('color-frames', aliases=['colour-frames'],
+                            help='the colour methods on real texture: views of a posed RGB-D folder, each through '
+                                 'its own colour response, scored against the undistorted images too')
+    r.add_argument('folder', help='frame-NNNNNN.{color.png,depth.png,pose.txt} (e.g. ../shared/data/rgbd_box)')
+    r.add_argument('--intrinsics', help='3x3 intrinsic matrix (default FOLDER/intrinsics.K.txt)')
+    r.add_argument('--views', type=int, default=8, help='frames used as the cameras of one frame set')
+    r.add_argument('--seed', type=int, default=0, help='seed of the colour responses')
+    r.add_argument('--chart-free-model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'))
+    r.add_argument('--json', help='write the report here')
+    r.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
+    r.add_argument('--quiet', action='store_true')
+    r.set_defaults(func=cmd_eval_color_frames)
+
     f = sub.add_parser('color-fit', aliases=['colour-fit'], help='per-camera colour models from correspondences between the cameras')
     common(f)
     f.add_argument('--out', required=True, help='calibration.yaml to write (the input with new colour models)')
-    f.add_argument('--model', default='affine_3x4', choices=('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'))
+    f.add_argument('--model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'),
+                   help='auto: the simplest model that fits without hurting dark pixels (none for a consistent rig)')
     f.add_argument('--reference', default='mean',
                    help='mean (no camera favoured), chart (on top of the calibration\'s chart models, anchored to '
                         'the bag\'s board views) or a camera name')

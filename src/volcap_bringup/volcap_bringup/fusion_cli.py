@@ -87,12 +87,17 @@ def cmd_eval_fusion(args) -> int:
 def cmd_fuse_frames(args) -> int:
     from volcap_eval.fusion import fuse_folder
     from volcap_fusion.tsdf import FusionConfig
-    cfg = FusionConfig(voxel_size=args.voxel, weight_threshold=args.weight_threshold, depth_max=args.depth_max)
-    report = fuse_folder(args.folder, args.intrinsics, cfg, args.out, stride=args.stride)
+    intrinsics = args.intrinsics or str(Path(args.folder) / 'intrinsics.K.txt')
+    box = {'box_center': tuple(args.box_center)} if args.box_center else {}
+    cfg = FusionConfig(voxel_size=args.voxel, weight_threshold=args.weight_threshold, depth_max=args.depth_max,
+                       capture_volume=args.capture_volume, box_size=tuple(args.box_size), **box)
+    report = fuse_folder(args.folder, intrinsics, cfg, args.out, stride=args.stride)
     c = report['distance_to_bare_open3d']
-    print(f'fused {report["frames"]} frames into {args.out} ({report["triangles"]} triangles); against a bare Open3D '
-          f'integration of the same frames: mean {c["mean_mm"]:.2f} mm, p95 {c["p95_mm"]:.2f} mm; '
-          f'render {report["render"]}')
+    print(f'fused {report["frames"]} frames into {args.out} ({report["triangles"]} triangles), capture volume from '
+          f'the {report["capture_volume"]}: {100 * report["depth_left_out"]:.1f} % of the depth left out; '
+          f'{100 * report["depth_within_2cm"]:.1f} % of the depth points within 2 cm of the mesh (bare Open3D '
+          f'{100 * report["bare_depth_within_2cm"]:.1f} %); against the bare Open3D mesh: mean {c["mean_mm"]:.2f} mm, '
+          f'p95 {c["p95_mm"]:.2f} mm; render {report["render"]}')
     return 0
 
 
@@ -165,11 +170,17 @@ def add_parsers(sub, esub) -> None:
 
     f = sub.add_parser('fuse-frames', help='fuse a folder of posed RGB-D frames (frame-NNNNNN.color/depth/pose)')
     f.add_argument('folder')
-    f.add_argument('--intrinsics', required=True, help='3x3 intrinsic matrix (text)')
+    f.add_argument('--intrinsics', help='3x3 intrinsic matrix (text; default FOLDER/intrinsics.K.txt)')
     f.add_argument('--out', required=True, help='mesh PLY (a .json report and .png render are written beside it)')
     f.add_argument('--voxel', type=float, default=0.01)
     f.add_argument('--weight-threshold', type=float, default=1.0)
-    f.add_argument('--depth-max', type=float, default=3.0)
+    f.add_argument('--depth-max', type=float, default=6.5, help='depth beyond this is not fused (m)')
+    f.add_argument('--capture-volume', choices=('auto', 'data'), default='auto',
+                   help='auto: a --box-size box where the cameras converge, else the bounds of all depth; '
+                        'data: always the bounds of all depth')
+    f.add_argument('--box-size', type=float, nargs=3, default=(2.6, 2.6, 2.6), metavar=('X', 'Y', 'Z'))
+    f.add_argument('--box-center', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
+                   help='a fixed capture box centre (world frame of the poses)')
     f.add_argument('--stride', type=int, default=1, help='use every Nth frame')
     f.add_argument('--quiet', action='store_true')
     f.set_defaults(func=cmd_fuse_frames)

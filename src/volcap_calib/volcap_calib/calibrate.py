@@ -22,6 +22,7 @@ from volcap_core.rig import Rig
 from .board import BoardConfig, reference_srgb8
 from .chart import quad_mean
 from .color import METHODS, ColorFit, fit_camera_color, illuminated_reference, view_illumination
+from .coverage import Coverage, advice_for, rig_coverage
 from .detect import BoardDetector, DetectionError
 from .extrinsics import (
     CalibrationError,
@@ -55,6 +56,9 @@ class CalibrationConfig:
     min_patch_px: float = 12.0           # shortest patch side in the image to sample it
     patch_inner: float = 0.6             # fraction of the patch (per side) that is averaged
     max_chart_angle_deg: float = 70.0    # chart seen more obliquely than this is not sampled
+    # a camera whose predicted pose error exceeds these is flagged weak (the rig's target)
+    max_rot_err_deg: float = 0.1
+    max_trans_err_mm: float = 2.0
 
 
 @dataclass
@@ -63,6 +67,8 @@ class CalibrationOutcome:
     extrinsics: ExtrinsicResult
     color: dict[str, ColorFit]
     color_errors: dict[str, str]
+    weak: dict[str, str] = field(default_factory=dict)   # camera -> predicted error over the target
+    coverage: Coverage | None = None
 
 
 def patch_colors(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray, board: BoardConfig,
@@ -202,7 +208,19 @@ class Calibrator:
         if unseen:
             raise CalibrationError(f'cameras never saw the board ({self.views} frame sets)',
                                    {c: _why_unseen(self.rejected[c]) for c in unseen})
-        extrinsics = solve_rig(self.observations, models, reference, self.cfg.solver, self.rejected)
+        try:
+            extrinsics = solve_rig(self.observations, models, reference, self.cfg.solver, self.rejected)
+        except CalibrationError as e:
+            coverage = self.coverage(reference)
+            if coverage.advice:
+                raise CalibrationError(f'{e}. Next: {" ".join(coverage.advice)}', e.cameras) from e
+            raise
+        weak = {c: f'predicted error {r.rot_sigma_deg:.3f} deg / {r.trans_sigma_mm:.2f} mm (target '
+                   f'{self.cfg.max_rot_err_deg} deg / {self.cfg.max_trans_err_mm} mm)'
+                for c, r in extrinsics.cameras.items()
+                if r.rot_sigma_deg is not None and (r.rot_sigma_deg > self.cfg.max_rot_err_deg
+                                                    or r.trans_sigma_mm > self.cfg.max_trans_err_mm)}
+        coverage = self.coverage(reference, weak)
         fits, color_errors = {}, {}
         illumination = self.illumination() if any(self.patches.values()) else {}
         for c in self.rig.names:
@@ -216,13 +234,24 @@ class Calibrator:
             rep = extrinsics.cameras[c]
             cams[c] = CameraCalibration(extrinsics.T_world_color[c], self.rig.camera(c).color_frame,
                                         rep.reproj_rms_px, rep.depth_rms_mm, rep.views,
-                                        fits[c].to_dict() if c in fits else None)
+                                        fits[c].to_dict() if c in fits else None,
+                                        {'rot_deg': rep.rot_sigma_deg, 'trans_mm': rep.trans_sigma_mm})
         calibration = Calibration(reference, self.rig.camera(reference).color_frame, cams, extrinsics.method,
                                   extra={'board': self.board.to_dict(), 'rig': self.rig.name,
                                          'frame_sets': self.views,
-                                         'colour_errors': color_errors})
+                                         'colour_errors': color_errors,
+                                         'weak_cameras': weak, 'advice': coverage.advice})
         calibration.studio = self.studio_frame(extrinsics.T_world_color, reference)
-        return CalibrationOutcome(calibration, extrinsics, fits, color_errors)
+        return CalibrationOutcome(calibration, extrinsics, fits, color_errors, weak, coverage)
+
+    def coverage(self, reference: str | None = None, weak: dict[str, str] | None = None) -> Coverage:
+        """The board views' coverage of the rig so far (``weak``: cameras the solve found weak,
+        added to those the view graph shows)."""
+        coverage = rig_coverage(self.observations, self.rig.names, reference or self.cfg.reference or self.rig.names[0])
+        if weak:
+            coverage.weak = {**weak, **coverage.weak}
+            coverage.advice = advice_for(self.observations, coverage)
+        return coverage
 
 
 def _why_unseen(rejected: dict[int, str]) -> str:

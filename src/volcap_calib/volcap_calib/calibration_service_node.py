@@ -69,6 +69,7 @@ class CalibrationService(Node):
         self.infos: dict[tuple[str, str], CameraInfo] = {}
         self.rig_source = 'camera_info + /tf_static'   # until a rig file or /volcap/rig says otherwise
         self.phase = None
+        self.coverage_summary = ''
         self.worker = DropOldestWorker(self._detect, cfg.queue_size, 'board-detection',
                                        on_error=self._on_detection_error, ready=lambda: self.session.ready)
 
@@ -212,7 +213,8 @@ class CalibrationService(Node):
             return response
         self._publish(solved.calibration)
         response.success, response.message = True, solved.message
-        self.diagnostics.report('ok', response.message)
+        self.diagnostics.report('warn' if solved.weak else 'ok', response.message,
+                                weak_cameras=','.join(solved.weak))
         return response
 
     def _publish(self, calibration: Calibration) -> None:
@@ -232,9 +234,16 @@ class CalibrationService(Node):
         if not self.session.ready:
             return
         observations, views = self.session.counts()
-        self.diagnostics.report('ok', f'{observations} board observations in {views} frame sets',
+        coverage = self.session.coverage()
+        summary = coverage.summary()
+        if summary != self.coverage_summary and observations:
+            self.get_logger().info(f'board coverage: {summary}')
+            self.coverage_summary = summary
+        self.diagnostics.report('ok', f'{observations} board observations in {views} frame sets; {summary}',
                                 observations=observations, frame_sets=views, queued=self.worker.pending,
-                                dropped=self.worker.dropped)
+                                dropped=self.worker.dropped, linked=','.join(coverage.linked),
+                                unlinked=','.join(coverage.unlinked), weak=','.join(coverage.weak),
+                                advice=' '.join(coverage.advice))
 
     def destroy_node(self):
         self.worker.stop(timeout=2.0)

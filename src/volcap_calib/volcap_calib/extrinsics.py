@@ -71,10 +71,14 @@ class CameraReport:
     reproj_rms_px: float
     depth_rms_mm: float | None
     rejected: dict[int, str] = field(default_factory=dict)   # view -> reason
+    # predicted RMS pose error relative to the reference (None: not predicted, e.g. the baseline)
+    rot_sigma_deg: float | None = None
+    trans_sigma_mm: float | None = None
 
     def to_dict(self) -> dict:
         return {'views': self.views, 'corners': self.corners, 'reproj_rms_px': self.reproj_rms_px,
-                'depth_rms_mm': self.depth_rms_mm, 'rejected_views': {int(k): v for k, v in self.rejected.items()}}
+                'depth_rms_mm': self.depth_rms_mm, 'rejected_views': {int(k): v for k, v in self.rejected.items()},
+                'predicted_rot_err_deg': self.rot_sigma_deg, 'predicted_trans_err_mm': self.trans_sigma_mm}
 
 
 @dataclass
@@ -259,6 +263,7 @@ def solve_rig(observations: list[Observation], models: dict[str, CameraModel], r
     sol = least_squares(residuals, x0, jac_sparsity=sparsity, loss='soft_l1', f_scale=cfg.robust_scale,
                         x_scale='jac', method='trf', xtol=1e-10, ftol=1e-10, max_nfev=200)
     T_cam, T_view = unpack(sol.x)
+    sigmas = pose_sigmas(sol, {c: cam_col[c] for c in free})
     reproj, depth = residual_parts(sol.x)
     reports, bad = {}, {}
     depth_by_obs = dict(zip(depth_sets, depth))
@@ -268,7 +273,8 @@ def solve_rig(observations: list[Observation], models: dict[str, CameraModel], r
         d = [depth_by_obs[i] for i in idx if i in depth_by_obs]
         rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
         d_rms = float(np.sqrt(np.mean(np.concatenate(d) ** 2)) * 1000) if d else None
-        reports[c] = CameraReport(len(idx), int(sum(observations[i].corners for i in idx)), rms, d_rms, rejected[c])
+        reports[c] = CameraReport(len(idx), int(sum(observations[i].corners for i in idx)), rms, d_rms, rejected[c],
+                                  *sigmas.get(c, (0.0, 0.0)))
         if rms > cfg.max_reproj_rms_px:
             bad[c] = f'reprojection RMS {rms:.2f} px after the joint solve (limit {cfg.max_reproj_rms_px})'
         elif d_rms is not None and d_rms > cfg.max_depth_rms_mm:
@@ -276,6 +282,33 @@ def solve_rig(observations: list[Observation], models: dict[str, CameraModel], r
     if bad:
         raise CalibrationError('inconsistent cameras', bad)
     return ExtrinsicResult(reference, T_cam, T_view, reports, 'joint_least_squares')
+
+
+def pose_sigmas(sol, columns: dict[str, int]) -> dict[str, tuple[float, float]]:
+    """Predicted RMS rotation (deg) and position (mm) error of each free camera: the covariance
+    sigma^2 (J^T J)^-1 of the solution (J the loss-weighted Jacobian at the optimum, sigma^2 the
+    residual variance per degree of freedom), its camera block mapped from rotation-vector
+    to rotation-angle space. Assumes independent corner and depth noise: correlated or
+    systematic errors are not seen."""
+    J = sol.jac.toarray() if hasattr(sol.jac, 'toarray') else np.asarray(sol.jac)
+    dof = max(len(sol.fun) - len(sol.x), 1)
+    variance = float(sol.fun @ sol.fun) / dof
+    covariance = variance * np.linalg.pinv(J.T @ J, hermitian=True)
+    out = {}
+    for camera, col in columns.items():
+        block = covariance[col:col + 6, col:col + 6]
+        A = _rotvec_to_angle(sol.x[col:col + 3])
+        rot = np.degrees(np.sqrt(max(np.trace(A @ block[:3, :3] @ A.T), 0.0)))
+        out[camera] = (float(rot), float(np.sqrt(max(np.trace(block[3:, 3:]), 0.0)) * 1000))
+    return out
+
+
+def _rotvec_to_angle(rotvec: np.ndarray, step: float = 1e-6) -> np.ndarray:
+    """(3, 3) d(rotation error vector)/d(rotation vector) at ``rotvec``: a rotation vector is
+    not a rotation angle away from identity (near 180 deg it moves the rotation less)."""
+    R = Rotation.from_rotvec(rotvec)
+    return np.stack([(Rotation.from_rotvec(rotvec + step * e) * R.inv()).as_rotvec() / step
+                     for e in np.eye(3)], axis=1)
 
 
 def _sparsity(observations, depth_sets, cam_col, view_col, n_params):

@@ -132,9 +132,16 @@ class CalibrateReport:
             depth = f'{rep.depth_rms_mm:5.2f} mm' if rep.depth_rms_mm is not None else '   -    '
             col_txt = (f'  colour {col["method"]:<18} dE2000 {col["patch_de2000_before"]:5.2f} -> '
                        f'{col["patch_de2000_after"]:4.2f}') if col else '  colour -'
-            out.append(f'  {c}: {rep.views:2d} views  reproj {rep.reproj_rms_px:.3f} px  depth {depth}{col_txt}')
+            predicted = (f'  predicted {rep.rot_sigma_deg:.3f} deg {rep.trans_sigma_mm:5.2f} mm'
+                         if rep.rot_sigma_deg is not None else '')
+            flag = '  WEAK' if c in self.outcome.weak else ''
+            out.append(f'  {c}: {rep.views:2d} views  reproj {rep.reproj_rms_px:.3f} px  depth {depth}{predicted}'
+                       f'{flag}{col_txt}')
         for c, why in self.outcome.color_errors.items():
             out.append(f'  {c}: no colour model: {why}')
+        if self.outcome.weak:
+            out.append(f'WEAK CALIBRATION: {", ".join(self.outcome.weak)} predicted beyond the target; '
+                       + ' '.join(self.outcome.calibration.extra.get('advice', [])))
         if self.icp and 'skipped' in self.icp:
             out.append(f'ICP skipped: {self.icp["skipped"]}; the board solution is kept')
         for c, rep in (self.icp or {}).get('cameras', {}).items():
@@ -162,7 +169,8 @@ def run(cfg: CalibrateConfig) -> CalibrateReport:
     report = {'calibration': str(out), 'reference': calibration.reference, 'frame_sets': calibrator.views,
               'studio': calibration.studio.to_dict(),
               'cameras': {c: outcome.extrinsics.cameras[c].to_dict() for c in calibration.cameras},
-              'colour': color, 'colour_average': color_summary(color), 'colour_errors': outcome.color_errors}
+              'colour': color, 'colour_average': color_summary(color), 'colour_errors': outcome.color_errors,
+              'weak_cameras': outcome.weak, 'coverage': outcome.coverage.to_dict()}
     if icp is not None:
         report['icp'] = icp
     files = {'calibration': out,

@@ -16,6 +16,7 @@ from volcap_core.topics import CALIBRATION_PHASE, camera_names
 from .board import BoardConfig
 from .calibrate import CalibrationConfig, Calibrator, CameraFrame
 from .color import METHODS
+from .coverage import Coverage
 from .extrinsics import SolverConfig
 
 
@@ -48,6 +49,7 @@ class CalibrationServiceConfig:
 class Solved:
     calibration: Calibration
     message: str            # one line for the service response and the log
+    weak: dict[str, str]    # cameras whose predicted pose error exceeds the target -> why
 
 
 class CalibrationSession:
@@ -113,7 +115,15 @@ class CalibrationSession:
                    f'wrote {output}')
         if outcome.color_errors:
             message += '; no colour model for ' + ', '.join(f'{c} ({why})' for c, why in outcome.color_errors.items())
-        return Solved(calibration, message)
+        if outcome.weak:
+            message += ('; WEAK: ' + ', '.join(f'{c} ({why})' for c, why in outcome.weak.items()) + '; '
+                        + ' '.join(calibration.extra.get('advice', [])))
+        return Solved(calibration, message, outcome.weak)
+
+    def coverage(self) -> Coverage | None:
+        """How the board views gathered so far link the cameras (None before the rig is known)."""
+        with self._lock:
+            return self.calibrator.coverage() if self.calibrator else None
 
     def _solver_config(self) -> CalibrationConfig:
         c = self.cfg

@@ -12,12 +12,13 @@ from volcap_core.color import ColorModel
 from volcap_core.settings import setting, validate
 
 from .correspondence import CorrespondenceConfig, View, cameras_in, find_correspondences, merge_matches
-from .methods import CHART_FREE_MODELS, chart_free_fit
+from .methods import CHART_FREE_MODELS, ModelChoice, chart_free_fit, choose_chart_free_model, identity_models
 
 
 @dataclass
 class ColorFitConfig:
-    model: str = setting('affine_3x4', 'per-camera model', choices=CHART_FREE_MODELS)
+    model: str = setting('auto', 'per-camera model (auto: the simplest that fits without hurting dark pixels, '
+                                 'or none when the rig is already consistent)', choices=('auto',) + CHART_FREE_MODELS)
     reference: str = setting('mean', 'mean (no camera favoured), chart (on top of the calibration\'s chart '
                                      'models, anchored to the board views) or a camera name')
     fit_min_fraction: float = setting(0.001, 'camera pairs with fewer pixels in correspondence are left out',
@@ -35,10 +36,11 @@ class ColorFitReport:
     cameras: list[str]
     pairs: int
     correspondences: int
+    choice: ModelChoice
 
     def line(self) -> str:
-        return (f'{self.source} models for {len(self.cameras)} cameras from {self.pairs} camera pairs '
-                f'({self.correspondences} correspondences)')
+        return (f'{self.source} {self.choice.model} models for {len(self.cameras)} cameras from {self.pairs} camera '
+                f'pairs ({self.correspondences} correspondences; {self.choice.why})')
 
 
 def run(cfg: ColorFitConfig, sets: list[list[View]], calibration: Calibration,
@@ -59,14 +61,18 @@ def run(cfg: ColorFitConfig, sets: list[list[View]], calibration: Calibration,
         if anchor is None:
             raise ValueError('reference chart needs the chart samples of the board views')
         base = {c: ColorModel.from_dict(calibration.cameras[c].color) for c in cameras}
-    models = chart_free_fit(matches, cameras, cfg.model, cfg.reference, base=base, anchor=anchor)
+    choice = choose_chart_free_model(matches, cameras, cfg.reference, base, anchor) if cfg.model == 'auto' else \
+        ModelChoice(cfg.model, why='chosen by the caller')
+    models = identity_models(cameras, base) if choice.model == 'identity' else \
+        chart_free_fit(matches, cameras, choice.model, cfg.reference, base=base, anchor=anchor)
     source = 'chart_harmonised' if base else 'chart_free'
     for c, m in models.items():
         previous = calibration.cameras[c].color
         entry = {**m.to_dict(), 'source': source,
-                 'fit': {'bag': str(source_bag), 'model': cfg.model, 'reference': cfg.reference,
+                 'fit': {'bag': str(source_bag), 'model': choice.model, 'why': choice.why, 'reference': cfg.reference,
                          'pairs': sum(c in p for p in matches), 'frame_sets': len(sets)}}
         if previous is not None:
             entry['previous'] = previous     # the chart fit, with its patch errors
         calibration.cameras[c].color = entry
-    return ColorFitReport(calibration, source, list(models), len(matches), sum(len(m) for m in matches.values()))
+    return ColorFitReport(calibration, source, list(models), len(matches), sum(len(m) for m in matches.values()),
+                          choice)

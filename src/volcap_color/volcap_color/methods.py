@@ -16,7 +16,7 @@ paper 001 compares against, each as a per-camera mapping sRGB (N, 3) in [0, 1] -
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import colour as color_science
@@ -24,13 +24,15 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.sparse.csgraph import shortest_path
 
-from volcap_core.color import ColorModel, srgb_to_linear
+from volcap_core.color import ColorModel, delta_e2000, srgb_to_lab, srgb_to_linear
 
 from .apply import pixel_centres
 from .correspondence import Matches
 
 Mapping = Callable[[np.ndarray], np.ndarray]
 CHART_FREE_MODELS = ('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4')
+SELECTABLE_MODELS = ('gain', 'matrix_3x3', 'affine_3x4')     # simplest first
+DARK_L = 25.0          # CIELAB L* below which a correspondence counts as dark
 
 
 @dataclass
@@ -251,6 +253,12 @@ def _identity_row(model: str, channel: int) -> np.ndarray:
     return row
 
 
+def identity_models(cameras: list[str], base: dict[str, ColorModel] | None = None) -> dict[str, ColorModel]:
+    """Every camera left as it is (as its ``base`` model leaves it)."""
+    base = base or {}
+    return {c: _to_color_model('gain', [_identity_row('gain', k) for k in range(3)], base.get(c)) for c in cameras}
+
+
 def _to_color_model(model: str, rows: list[np.ndarray], base: ColorModel | None = None) -> ColorModel:
     if model in ('matrix_3x3', 'affine_3x4'):
         M = np.array(rows) if model == 'affine_3x4' else np.hstack([np.array(rows), np.zeros((3, 1))])
@@ -364,3 +372,74 @@ def chart_free_fit(matches: dict[tuple[str, str], Matches], cameras: list[str], 
         sigma = 1.4826 * np.median(np.concatenate(residuals)) + 1e-6
         weights = [1.0 / (1.0 + (r / (2.0 * sigma)) ** 2) for r in residuals]
     return {c: _to_color_model(model, rows[idx[c]], base.get(c)) for c in cameras}
+
+
+# --- choosing the chart-free model --------------------------------------------------------------
+@dataclass
+class ModelChoice:
+    model: str                   # a CHART_FREE_MODELS name, or 'identity' when none helps
+    scores: dict[str, dict] = field(default_factory=dict)   # candidate -> {'de2000', 'de2000_dark'}
+    why: str = ''
+
+    def to_dict(self) -> dict:
+        return {'model': self.model, 'scores': self.scores, 'why': self.why}
+
+
+def split_matches(matches: dict[tuple[str, str], Matches], share: float = 0.5, seed: int = 0
+                  ) -> tuple[dict[tuple[str, str], Matches], dict[tuple[str, str], Matches]]:
+    """Each pair's correspondences split at random into two disjoint sets (``share`` in the first)."""
+    rng = np.random.default_rng(seed)
+    first, second = {}, {}
+    for key, m in matches.items():
+        pick = rng.random(len(m)) < share
+        for out, keep in ((first, pick), (second, ~pick)):
+            out[key] = Matches(m.a, m.b, m.pixels_a[keep], m.pixels_b[keep], m.colors_a[keep], m.colors_b[keep],
+                               m.fraction * float(keep.mean()) if len(m) else 0.0)
+    return first, second
+
+
+def consistency(matches: dict[tuple[str, str], Matches], models: dict[str, ColorModel] | None) -> tuple[float, float]:
+    """Mean CIEDE2000 between corresponding colours over every pair (``models`` applied; None:
+    as they are), over all correspondences and over the dark ones (L* < ``DARK_L``)."""
+    des, dark = [], []
+    for (a, b), m in matches.items():
+        if not len(m):
+            continue
+        ca = models[a].apply(m.colors_a) if models else m.colors_a
+        cb = models[b].apply(m.colors_b) if models else m.colors_b
+        de = delta_e2000(np.clip(ca, 0, 1), np.clip(cb, 0, 1))
+        des.append(de)
+        dark.append(de[srgb_to_lab(np.minimum(m.colors_a, m.colors_b))[:, 0] < DARK_L])
+    all_de, dark_de = np.concatenate(des) if des else np.zeros(0), np.concatenate(dark) if dark else np.zeros(0)
+    return (float(all_de.mean()) if len(all_de) else float('nan'),
+            float(dark_de.mean()) if len(dark_de) else float('nan'))
+
+
+def choose_chart_free_model(matches: dict[tuple[str, str], Matches], cameras: list[str], reference: str = 'mean',
+                            base: dict[str, ColorModel] | None = None,
+                            anchor: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+                            candidates: tuple[str, ...] = SELECTABLE_MODELS, tolerance: float = 0.05,
+                            seed: int = 0) -> ModelChoice:
+    """The model family for this rig, chosen on correspondences held out from the fit (half of
+    each pair's): the simplest candidate within ``tolerance`` (relative) of the best held-out
+    CIEDE2000 that does not make the dark correspondences worse than they were, or the identity
+    when no candidate improves on the untouched colours (a rig already consistent). ``base``,
+    ``anchor``: as ``chart_free_fit`` (the untouched colours are then the base models')."""
+    fit, check = split_matches(matches, seed=seed)
+    before, before_dark = consistency(check, base)
+    scores = {'identity': {'de2000': before, 'de2000_dark': before_dark}}
+    for model in candidates:
+        de, dark = consistency(check, chart_free_fit(fit, cameras, model, reference, base=base, anchor=anchor,
+                                                     seed=seed))
+        scores[model] = {'de2000': de, 'de2000_dark': dark}
+    best = min(scores[m]['de2000'] for m in candidates)
+    if not best < before:
+        return ModelChoice('identity', scores, f'no model improves on the untouched colours ({before:.2f})')
+    for model in candidates:
+        s = scores[model]
+        if s['de2000'] <= best * (1 + tolerance) and not s['de2000_dark'] > before_dark:
+            return ModelChoice(model, scores, f'simplest within {tolerance:.0%} of the best held-out CIEDE2000 '
+                                              f'({best:.2f}) that keeps dark pixels ({before_dark:.2f} -> '
+                                              f'{s["de2000_dark"]:.2f})')
+    model = min(candidates, key=lambda m: scores[m]['de2000'])
+    return ModelChoice(model, scores, 'every candidate worsens dark pixels; the best held-out one')

@@ -59,11 +59,16 @@ class CameraCalibration:
     depth_rms_mm: float | None = None
     views: int = 0
     color: dict | None = None      # {'method', 'matrix', fit errors...}: a volcap_core.color.ColorModel
+    # the solve's predicted RMS pose error relative to the reference: {'rot_deg', 'trans_mm'}
+    predicted_error: dict | None = None
 
     def to_dict(self) -> dict:
-        return {'T_world_color': matrix_to_list(self.T_world_color), 'color_frame': self.color_frame,
-                'reproj_rms_px': self.reproj_rms_px, 'depth_rms_mm': self.depth_rms_mm, 'views': self.views,
-                'colour': self.color}
+        out = {'T_world_color': matrix_to_list(self.T_world_color), 'color_frame': self.color_frame,
+               'reproj_rms_px': self.reproj_rms_px, 'depth_rms_mm': self.depth_rms_mm, 'views': self.views,
+               'colour': self.color}
+        if self.predicted_error is not None:
+            out['predicted_error'] = dict(self.predicted_error)
+        return out
 
     @classmethod
     def from_dict(cls, d: dict, name: str = 'camera') -> 'CameraCalibration':
@@ -87,8 +92,16 @@ class CameraCalibration:
                 ColorModel.from_dict(color)
             except (KeyError, TypeError, ValueError) as e:
                 raise CalibrationFileError(f'cameras: {name}: colour: {e}') from e
+        predicted = d.get('predicted_error')
+        if predicted is not None:
+            if not isinstance(predicted, dict):
+                raise CalibrationFileError(f'cameras: {name}: predicted_error: expected a mapping, '
+                                           f'got {type(predicted).__name__}')
+            predicted = {k: _number(predicted.get(k), f'cameras: {name}: predicted_error: {k}')
+                         for k in ('rot_deg', 'trans_mm')}
         return cls(T, str(d.get('color_frame') or ''), _number(d.get('reproj_rms_px'), f'cameras: {name}: reproj_rms_px'),
-                   _number(d.get('depth_rms_mm'), f'cameras: {name}: depth_rms_mm'), int(views or 0), color)
+                   _number(d.get('depth_rms_mm'), f'cameras: {name}: depth_rms_mm'), int(views or 0), color,
+                   predicted)
 
 
 @dataclass

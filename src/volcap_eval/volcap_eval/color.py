@@ -30,7 +30,9 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
+import colour as color_science
 import numpy as np
 from tqdm import tqdm
 
@@ -47,19 +49,25 @@ from volcap_color.correspondence import (
 )
 from volcap_color.methods import (
     Mapping,
+    ModelChoice,
     PixelMapping,
     apply_mapping,
     brown_lowe,
     chart_free_fit,
+    choose_chart_free_model,
     fit_finlayson,
     fit_reinhard,
     fit_vandermonde,
     identity,
+    identity_models,
     moulon,
     propagate,
+    split_matches,
 )
-from volcap_core.calibration import Calibration
-from volcap_core.color import ColorModel, delta_e2000
+from volcap_core.calibration import Calibration, CameraCalibration
+from volcap_core.color import ColorModel, delta_e2000, linear_to_lab, srgb_to_lab, srgb_to_linear
+from volcap_studio.render import ColorResponse
+from volcap_studio.session import GroundTruth
 
 from .color_figures import write_color_figures
 from .replay import capture_views
@@ -74,19 +82,11 @@ class ColorEvalConfig:
     eval_min_fraction: float = 0.01
     fit_min_fraction: float = 0.001
     max_scored_per_pair: int = 50_000
-    chart_free_model: str = 'affine_3x4'
+    chart_free_model: str = 'auto'    # auto: chosen per rig (choose_chart_free_model), or a CHART_FREE_MODELS name
     chart_free_reference: str = 'mean'
     anchor_weight: float = 0.05       # chart term of volcap_chart_harmonised, relative to correspondences
     seed: int = 0
     correspondence: CorrespondenceConfig = field(default_factory=lambda: CorrespondenceConfig(min_fraction=0.0))
-
-
-
-
-
-
-
-
 
 
 def _as_8bit(rgb: np.ndarray) -> np.ndarray:
@@ -107,6 +107,75 @@ def pair_scores(matches: dict[tuple[str, str], Matches], mappings: dict[str, Map
         out[f'{a}-{b}'] = {'de2000': float(delta_e2000(ca, cb).mean()),
                            'psnr': float(10 * np.log10(1.0 / max(mse, 1e-12))), 'n': len(m)}
     return out
+
+
+SATURATED_CHROMA = 25.0     # CIELAB C*ab of the untouched colour above which a pixel counts as saturated
+TruthFn = Callable[[str, np.ndarray, np.ndarray], np.ndarray]   # (camera, colours, pixels) -> true colours
+
+
+def _scored_rows(matches: dict[tuple[str, str], Matches], max_per_pair: int, seed: int):
+    """(camera, colours, pixels) of both sides of every pair's scored correspondences (the same
+    random subset ``pair_scores`` scores)."""
+    rng = np.random.default_rng(seed)
+    for (a, b), m in matches.items():
+        sel = np.arange(len(m)) if len(m) <= max_per_pair else rng.choice(len(m), max_per_pair, replace=False)
+        yield a, m.colors_a[sel], m.pixels_a[sel].astype(np.float64)
+        yield b, m.colors_b[sel], m.pixels_b[sel].astype(np.float64)
+
+
+def chroma_kept(matches: dict[tuple[str, str], Matches], mapping: dict[str, Mapping], max_per_pair: int,
+                seed: int = 0) -> dict:
+    """Mean chroma (CIELAB C*ab) of the saturated pixels (C*ab >= ``SATURATED_CHROMA`` as the
+    cameras recorded them) before and after the mapping: a method that buys consistency by
+    greying colours out shows here, where pairwise scores cannot see it."""
+    before, after = [], []
+    for camera, colors, pixels in _scored_rows(matches, max_per_pair, seed):
+        lab = srgb_to_lab(colors)
+        keep = np.hypot(lab[:, 1], lab[:, 2]) >= SATURATED_CHROMA
+        if keep.any():
+            mapped = srgb_to_lab(_as_8bit(apply_mapping(mapping[camera], colors[keep], pixels[keep])))
+            before.append(np.hypot(lab[keep, 1], lab[keep, 2]))
+            after.append(np.hypot(mapped[:, 1], mapped[:, 2]))
+    if not before:
+        return {'chroma_before': None, 'chroma_after': None, 'saturated_pixels': 0}
+    return {'chroma_before': float(np.concatenate(before).mean()), 'chroma_after': float(np.concatenate(after).mean()),
+            'saturated_pixels': int(sum(map(len, before)))}
+
+
+def truth_scores(matches: dict[tuple[str, str], Matches], mapping: dict[str, Mapping], truth: TruthFn,
+                 max_per_pair: int, seed: int = 0) -> dict:
+    """Mean CIEDE2000 of the mapped colours to the scene's true colours, allowing one colour
+    transform shared by every camera (a rig harmonised to any common look is not wrong), in
+    two strengths: ``truth_de2000`` one 3x3 matrix in linear light, ``truth_de2000_exposure``
+    one exposure gain (so a colour cast shared by all cameras counts against the method).
+    Pixels clipped in the truth are left out."""
+    mapped, true = [], []
+    for camera, colors, pixels in _scored_rows(matches, max_per_pair, seed):
+        t = truth(camera, colors, pixels)
+        ok = np.all((t > 0.002) & (t < 0.998), axis=1)
+        mapped.append(srgb_to_linear(_as_8bit(apply_mapping(mapping[camera], colors[ok], pixels[ok]))))
+        true.append(srgb_to_linear(t[ok]))
+    if not mapped or not sum(map(len, mapped)):
+        return {'truth_de2000': None, 'truth_de2000_exposure': None}
+    m, t = np.vstack(mapped), np.vstack(true)
+    M = np.linalg.lstsq(m, t, rcond=None)[0]
+    gain = float((m * t).sum() / max((m * m).sum(), 1e-12))
+    lab_t = linear_to_lab(t)
+
+    def de(x):
+        return float(color_science.delta_E(linear_to_lab(x), lab_t, method='CIE 2000').mean())
+    return {'truth_de2000': de(m @ M), 'truth_de2000_exposure': de(m * gain)}
+
+
+def synthetic_truth(bag: str | Path, sizes: dict[str, tuple[int, int]]) -> TruthFn | None:
+    """True colours of a synthetic bag's cameras (each camera's recorded response inverted to
+    the ideal camera's), or None for a bag without ground truth."""
+    try:
+        gt = GroundTruth(bag)
+    except FileNotFoundError:
+        return None
+    responses = {c: gt.color_response(c) for c in sizes}
+    return lambda camera, colors, pixels: responses[camera].true_colors(colors, pixels, sizes[camera])
 
 
 def summarise(scores: dict[str, dict]) -> dict:
@@ -139,8 +208,10 @@ def chart_table(samples: dict[str, tuple[np.ndarray, np.ndarray]], mapping: dict
 
 def method_mappings(fit: dict[tuple[str, str], Matches], cameras: list[str], calibration: Calibration,
                     chart_samples: dict[str, tuple[np.ndarray, np.ndarray]] | None, cfg: ColorEvalConfig
-                    ) -> tuple[dict[str, dict[str, Mapping]], dict[str, str], dict[str, dict[str, ColorModel]]]:
-    """Every method's per-camera mapping, the methods left out (with why) and our fitted models."""
+                    ) -> tuple[dict[str, dict[str, Mapping]], dict[str, str], dict[str, dict[str, ColorModel]],
+                               ModelChoice]:
+    """Every method's per-camera mapping, the methods left out (with why), our fitted models and
+    the chart-free model family used (and why)."""
     out: dict[str, dict[str, Mapping]] = {'original': {c: identity for c in cameras}}
     skipped = {}
     out['reinhard'] = propagate(fit, cameras, fit_reinhard)
@@ -158,10 +229,15 @@ def method_mappings(fit: dict[tuple[str, str], Matches], cameras: list[str], cal
     models = {}
     if not missing:
         models['volcap_chart'] = {c: ColorModel.from_dict(calibration.cameras[c].color) for c in cameras}
-    models['volcap_chart_free'] = chart_free_fit(fit, cameras, cfg.chart_free_model, cfg.chart_free_reference,
-                                                 seed=cfg.seed)
+    chart_free = choose_chart_free_model(fit, cameras, cfg.chart_free_reference, seed=cfg.seed) \
+        if cfg.chart_free_model == 'auto' else ModelChoice(cfg.chart_free_model, why='chosen by the caller')
+    models['volcap_chart_free'] = identity_models(cameras) if chart_free.model == 'identity' else \
+        chart_free_fit(fit, cameras, chart_free.model, cfg.chart_free_reference, seed=cfg.seed)
     if 'volcap_chart' in models and 'paper_diagonal' in out:
-        models['volcap_chart_harmonised'] = chart_free_fit(fit, cameras, cfg.chart_free_model, 'chart',
+        harmonised = choose_chart_free_model(fit, cameras, 'chart', models['volcap_chart'], chart_samples,
+                                             seed=cfg.seed).model if cfg.chart_free_model == 'auto' else chart_free.model
+        harmonised = 'gain' if harmonised == 'identity' else harmonised
+        models['volcap_chart_harmonised'] = chart_free_fit(fit, cameras, harmonised, 'chart',
                                                            base=models['volcap_chart'],
                                                            anchor=chart_samples, anchor_weight=cfg.anchor_weight,
                                                            seed=cfg.seed)
@@ -169,7 +245,7 @@ def method_mappings(fit: dict[tuple[str, str], Matches], cameras: list[str], cal
         skipped['volcap_chart_harmonised'] = 'needs the calibration\'s colour models and the bag\'s board views'
     for name, per_camera in models.items():
         out[name] = {c: per_camera[c].apply for c in cameras}
-    return out, skipped, models
+    return out, skipped, models, chart_free
 
 
 def neural_mappings(models_dir: str | Path, views: list[View], cameras: list[str]
@@ -204,7 +280,8 @@ def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dic
     scored = merge_matches(scored_sets, cfg.eval_min_fraction)
     thin = merge_matches(scored_sets, cfg.fit_min_fraction)
     scored_keys = {f'{a}-{b}' for a, b in scored}
-    mappings, skipped, models = method_mappings(fit, cameras, calibration, chart_samples, cfg)
+    mappings, skipped, models, chart_free = method_mappings(fit, cameras, calibration, chart_samples, cfg)
+    truth = synthetic_truth(bag, {v.name: (v.camera.width, v.camera.height) for views in sets for v in views})
     neural_info, luts = None, {}
     if neural is not None:
         extra, manifest, luts = neural_mappings(neural, [v for views in sets for v in views], cameras)
@@ -213,22 +290,92 @@ def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dic
         neural_info = {'models': str(neural), 'trained_on': trained, 'reference': manifest['reference'],
                        'scored_sets_trained_on': sorted(set(trained) & set(score_idx)),
                        'export_error': manifest.get('export_error', {})}
-    methods, all_pairs, pairs, table1 = {}, {}, {}, {}
-    for name in tqdm(mappings, desc='scoring methods', unit='method', disable=not progress):
-        pairs[name] = pair_scores(thin, mappings[name], cfg.max_scored_per_pair, cfg.seed)
-        methods[name] = summarise({p: v for p, v in pairs[name].items() if p in scored_keys})
-        all_pairs[name] = summarise(pairs[name])
-        if chart_samples:
-            table1[name] = chart_table(chart_samples, mappings[name])
+    methods, all_pairs, pairs = score_methods(mappings, thin, scored_keys, truth, cfg, progress)
+    table1 = {name: chart_table(chart_samples, m) for name, m in mappings.items()} if chart_samples else {}
     report = {'bag': str(bag), 'cameras': cameras, 'frame_sets': {'fit': fit_idx, 'scored': score_idx,
                                                                   'held_out': score_idx != fit_idx},
               'methods': methods, 'methods_all_pairs': all_pairs, 'skipped': skipped, 'pairs': pairs,
               'correspondences': {'fit_pairs': {f'{a}-{b}': len(m) for (a, b), m in fit.items()},
                                   'scored_pairs': {f'{a}-{b}': len(m) for (a, b), m in scored.items()}},
-              'table1': table1, 'neural': neural_info,
+              'table1': table1, 'neural': neural_info, 'chart_free_model': chart_free.to_dict(),
+              'truth': 'synthetic ground truth (each camera\'s response inverted)' if truth else None,
               'models': {name: {c: m.to_dict() for c, m in per.items()} for name, per in models.items()},
               'config': asdict(cfg)}
     return report, {'views': sets[score_idx[0]], 'mappings': mappings, 'models': models, 'region_luts': luts}
+
+
+def score_methods(mappings: dict[str, dict[str, Mapping]], matches: dict[tuple[str, str], Matches],
+                  scored_keys: set[str], truth: TruthFn | None, cfg: ColorEvalConfig, progress: bool = True
+                  ) -> tuple[dict, dict, dict]:
+    """(summary over the ``scored_keys`` pairs, summary over all pairs, per-pair scores) of every
+    method, each summary with the chroma check and, given ``truth``, the scores against it."""
+    methods, all_pairs, pairs = {}, {}, {}
+    for name in tqdm(mappings, desc='scoring methods', unit='method', disable=not progress):
+        pairs[name] = pair_scores(matches, mappings[name], cfg.max_scored_per_pair, cfg.seed)
+        extra = chroma_kept(matches, mappings[name], cfg.max_scored_per_pair, cfg.seed)
+        if truth is not None:
+            extra.update(truth_scores(matches, mappings[name], truth, cfg.max_scored_per_pair, cfg.seed))
+        methods[name] = {**summarise({p: v for p, v in pairs[name].items() if p in scored_keys}), **extra}
+        all_pairs[name] = {**summarise(pairs[name]), **extra}
+    return methods, all_pairs, pairs
+
+
+# real texture -------------------------------------------------------------------------------
+def distorted_frame_views(folder: str | Path, intrinsics: str | Path, count: int = 8, seed: int = 0
+                          ) -> tuple[list[View], dict[str, ColorResponse]]:
+    """``count`` frames spread over a posed RGB-D folder (``volcap fuse-frames`` layout) as the
+    cameras of one frame set, each recorded through its own random colour response (gain,
+    white balance, crosstalk, gamma, vignetting, noise: the synthetic studio's
+    ``ColorResponse.random``) applied to the real image taken as linear radiance. The
+    responses are the ground truth: inverted, they give back the real image."""
+    from .fusion import read_frames_folder
+    depth_model, color_model, frames = read_frames_folder(folder, intrinsics)
+    if color_model != depth_model:
+        raise ValueError(f'{folder}: colour and depth must share one pixel grid')
+    if len(frames) < count:
+        raise ValueError(f'{folder} has {len(frames)} frames, {count} asked for')
+    rng = np.random.default_rng(seed)
+    views, responses = [], {}
+    for k, i in enumerate(np.linspace(0, len(frames) - 1, count).round().astype(int)):
+        _, depth_mm, rgb, T = frames[i]
+        name = f'cam{k}'
+        responses[name] = ColorResponse.random(rng)
+        radiance = srgb_to_linear(rgb / 255.0).astype(np.float32)
+        recorded = responses[name].apply(radiance, rng)
+        views.append(View(name, recorded, depth_mm.astype(np.float32) / 1000, color_model, T))
+    return views, responses
+
+
+def evaluate_frames_color(folder: str | Path, intrinsics: str | Path | None = None, count: int = 8, seed: int = 0,
+                          cfg: ColorEvalConfig = ColorEvalConfig(), progress: bool = True) -> tuple[dict, dict]:
+    """`volcap eval color-frames`: the colour methods on real texture. One frame set of
+    ``count`` distorted real views (``distorted_frame_views``); every pair's correspondences
+    are split at random, one half fitted, the other scored; the truth is the undistorted image."""
+    intrinsics = intrinsics or Path(folder) / 'intrinsics.K.txt'
+    views, responses = distorted_frame_views(folder, intrinsics, count, seed)
+    cameras = [v.name for v in views]
+    matches = merge_matches([find_correspondences(views, cfg.correspondence)], cfg.fit_min_fraction)
+    fit, scored = split_matches(matches, seed=cfg.seed)
+    scored_keys = {f'{a}-{b}' for (a, b), m in scored.items() if 2 * m.fraction >= cfg.eval_min_fraction}
+    calibration = Calibration(cameras[0], cameras[0], {c: CameraCalibration(v.T_world_camera) for c, v in
+                                                       zip(cameras, views)})
+    mappings, skipped, models, chart_free = method_mappings(fit, cameras, calibration, None, cfg)
+    sizes = {v.name: (v.camera.width, v.camera.height) for v in views}
+
+    def truth(camera, colors, pixels):
+        return responses[camera].true_colors(colors, pixels, sizes[camera])
+    methods, all_pairs, pairs = score_methods(mappings, scored, scored_keys, truth, cfg, progress)
+    report = {'folder': str(folder), 'cameras': cameras, 'seed': seed,
+              'frame_sets': {'fit': [0], 'scored': [0], 'held_out': False},
+              'methods': methods, 'methods_all_pairs': all_pairs, 'skipped': skipped, 'pairs': pairs,
+              'correspondences': {'fit_pairs': {f'{a}-{b}': len(m) for (a, b), m in fit.items()},
+                                  'scored_pairs': {f'{a}-{b}': len(m) for (a, b), m in scored.items()}},
+              'table1': {}, 'neural': None, 'chart_free_model': chart_free.to_dict(),
+              'truth': 'the undistorted real images (each view\'s colour response inverted)',
+              'responses': {c: r.to_dict() for c, r in responses.items()},
+              'models': {name: {c: m.to_dict() for c, m in per.items()} for name, per in models.items()},
+              'config': asdict(cfg)}
+    return report, {'views': views, 'mappings': mappings, 'models': models, 'region_luts': {}}
 
 
 def format_report(report: dict) -> str:
@@ -240,12 +387,19 @@ def format_report(report: dict) -> str:
     for key, title in (('methods', f"Pairs with >= {cfg['eval_min_fraction']:.0%} of the pixels in correspondence "
                                    '(paper 001 protocol):'),
                        ('methods_all_pairs', f"Every pair with >= {cfg['fit_min_fraction']:.1%} (across stands too):")):
-        lines += [title, '', '| method | CIEDE2000 mean | weighted | std | PSNR mean | weighted | std | pairs |',
-                  '|---|---|---|---|---|---|---|---|']
+        truth = report.get('truth') is not None
+        lines += [title, '', '| method | CIEDE2000 mean | weighted | std | PSNR mean | weighted | std | pairs | '
+                  'chroma of saturated pixels |' + (' truth CIEDE2000 (3x3) | truth (exposure) |' if truth else ''),
+                  '|---|---|---|---|---|---|---|---|---|' + ('---|---|' if truth else '')]
         for name, s in report[key].items():
             lines.append(f"| {name} | {f(s['de2000_mean'])} | {f(s['de2000_wmean'])} | {f(s['de2000_std'])} | "
-                         f"{f(s['psnr_mean'])} | {f(s['psnr_wmean'])} | {f(s['psnr_std'])} | {s['pairs']} |")
+                         f"{f(s['psnr_mean'])} | {f(s['psnr_wmean'])} | {f(s['psnr_std'])} | {s['pairs']} | "
+                         f"{f(s.get('chroma_before'), 1)} -> {f(s.get('chroma_after'), 1)} |"
+                         + (f" {f(s.get('truth_de2000'))} | {f(s.get('truth_de2000_exposure'))} |" if truth else ''))
         lines.append('')
+    choice = report.get('chart_free_model')
+    if choice:
+        lines.append(f"volcap_chart_free model: {choice['model']} ({choice['why']})")
     for name, why in report['skipped'].items():
         lines.append(f'{name} left out: {why}')
     if report['table1']:
@@ -260,7 +414,9 @@ def format_report(report: dict) -> str:
             de = np.mean([c['patch_de2000'] for c in cams.values()])
             lines.append(f'| {name} | ' + ' | '.join(f'{sig[k]:.2f}' for k in 'RGBI') + ' | '
                          + ' | '.join(f'{ab[k]:.2f}' for k in 'RGBI') + f' | {de:.2f} |')
-    held = 'held-out frame sets' if report['frame_sets']['held_out'] else 'the frame set the methods were fitted on'
+    held = 'held-out frame sets' if report['frame_sets']['held_out'] else \
+        'the frame set the methods were fitted on' + (' (half of each pair\'s correspondences, held out from the fit)'
+                                                      if 'folder' in report else '')
     lines += ['', f"Scored on {held}: {report['frame_sets']['scored']}."]
     neural = report.get('neural')
     if neural:

@@ -44,8 +44,8 @@ from volcap_fusion.tsdf import (
     FusionConfig,
     TsdfFusion,
     bare_open3d_fusion,
-    crop_to_box,
     raycasting_scene,
+    sampled_depth_points,
 )
 
 COMPLETENESS_MM = 5.0
@@ -228,17 +228,24 @@ def read_frames_folder(folder: str | Path, intrinsics: str | Path, stride: int =
 
 
 def fuse_frames(folder: str | Path, intrinsics: str | Path, cfg: FusionConfig, stride: int = 1
-                ) -> tuple[FusedModel, FusedModel, list[np.ndarray]]:
-    """(ours, bare Open3D cut to the same capture box, camera poses) for a frame folder. Each
-    frame is one camera of a static rig: all are fused into one volume."""
+                ) -> tuple[FusedModel, FusedModel, list[CameraView]]:
+    """(ours, bare Open3D, the views) for a frame folder. Each frame is one camera of a static
+    rig: all are fused into one volume. The bare integration is not cut to our capture box, so
+    the comparison sees whatever the box leaves out."""
     depth_model, color_model, frames = read_frames_folder(folder, intrinsics, stride)
     views = [CameraView(n, d, depth_model, c, color_model, T) for n, d, c, T in frames]
-    fusion = TsdfFusion(cfg)
-    ours = fusion.fuse(views)
-    bare = bare_open3d_fusion(views, cfg)
-    box = fusion.capture_box(views)
-    bare = FusedModel(*crop_to_box(bare.vertices, bare.colors, bare.triangles, *box), bare.cameras)
-    return ours, bare, [v.T_world_camera for v in views]
+    return TsdfFusion(cfg).fuse(views), bare_open3d_fusion(views, cfg), views
+
+
+def depth_kept(model: FusedModel, views: list[CameraView], within: float = 0.02) -> float:
+    """The share of the views' depth points (every ``DEPTH_SAMPLE_STRIDE``-th pixel each way,
+    all ranges) within ``within`` metres of the mesh: how much of what the cameras measured
+    the model holds."""
+    points = np.vstack([sampled_depth_points(v) for v in views]).astype(np.float32)
+    if not len(points) or not len(model.triangles):
+        return 0.0
+    distance = model.raycasting_scene().compute_distance(o3d.core.Tensor(points)).numpy()
+    return float(np.mean(distance <= within))
 
 
 def surface_distance(a: FusedModel, b: FusedModel) -> dict:
@@ -257,13 +264,16 @@ def fuse_folder(folder: str | Path, intrinsics: str | Path, cfg: FusionConfig, o
     integration; a render of both (PNG) and the report (JSON) are written beside it."""
     from .render import render_rows
     t0 = time.monotonic()
-    ours, bare, poses = fuse_frames(folder, intrinsics, cfg, stride=stride)
+    ours, bare, views = fuse_frames(folder, intrinsics, cfg, stride=stride)
     out = Path(out)
     write_ply(out, ours)
     comparison = surface_distance(ours, bare)
+    poses = [v.T_world_camera for v in views]
     render = render_rows([('volcap', ours), ('bare Open3D', bare)], poses, out.with_suffix('.png'))
     report = {'frames': len(poses), 'voxel_size': cfg.voxel_size, 'vertices': len(ours.vertices),
               'triangles': len(ours.triangles), 'bare_vertices': len(bare.vertices),
+              'capture_volume': ours.capture_volume, 'depth_left_out': ours.depth_left_out,
+              'depth_within_2cm': depth_kept(ours, views), 'bare_depth_within_2cm': depth_kept(bare, views),
               'distance_to_bare_open3d': comparison, 'seconds': time.monotonic() - t0, 'render': str(render)}
     write_json(out.with_suffix('.json'), report)
     return report

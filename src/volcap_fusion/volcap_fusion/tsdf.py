@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import cv2
 import numba
@@ -21,7 +22,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from volcap_core.camera import CameraModel
-from volcap_core.poses import convergence_point, invert
+from volcap_core.poses import convergence_point, invert, transform_points
 from volcap_core.settings import setting, validate
 
 from . import VOXEL_SIZE
@@ -49,6 +50,10 @@ class FusionConfig:
         None, 'capture box centre x, y, z in the output frame (m); [0.0]: standing on the studio floor around '
         'its origin, or where the cameras point when the calibration has no floor', none_as=[0.0],
         read_only=True)
+    capture_volume: str = setting('auto', 'auto: the box above where the cameras converge (or on the studio floor), '
+                                  'else, when they do not converge, the bounds of all their depth; data: always the '
+                                  'bounds of all depth (a room, a moving camera)', choices=('auto', 'data'),
+                                  read_only=True)
     depth_upsample: int = setting(1, 'depth resampled this many times finer before integration', 1, 4,
                                   read_only=True)
     edge_tolerance: float = setting(0.02, 'depth step (m, +1 %) that separates surfaces', 0.0, 1.0, read_only=True)
@@ -109,6 +114,10 @@ class FusedModel:
     triangles: np.ndarray          # (M, 3) int32
     cameras: list[str] = field(default_factory=list)
     timings_ms: dict = field(default_factory=dict)
+    # of the cameras' depth (a sample of it): the share outside the capture volume or beyond
+    # depth_max, which the model cannot hold
+    depth_left_out: float | None = None
+    capture_volume: str = ''       # where the box came from: fixed, floor, converging cameras, data
 
     def raycasting_scene(self) -> o3d.t.geometry.RaycastingScene:
         return raycasting_scene(self.vertices, self.triangles)
@@ -325,22 +334,32 @@ class TsdfFusion:
             block_count=cfg.block_count, device=self.device)
 
     def capture_box(self, views: list[CameraView], on_floor: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """(min, max) corners of the capture box in the frame of the views' poses. ``on_floor``:
-        that frame is the studio frame (+Z up, z = 0 on the floor), and the box stands on the
-        floor (``FLOOR_SLACK`` below it, so soles resting on it are kept) around the z axis."""
+        """(min, max) corners of the capture box in the frame of the views' poses."""
+        return self.capture_volume(views, on_floor)[:2]
+
+    def capture_volume(self, views: list[CameraView], on_floor: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray, str]:
+        """(min, max, source) of the capture box in the frame of the views' poses. ``box_center``
+        set: that box. ``on_floor``: that frame is the studio frame (+Z up, z = 0 on the floor),
+        and the box stands on the floor (``FLOOR_SLACK`` below it, so soles resting on it are
+        kept) around the z axis. Otherwise the box around the point the cameras converge on,
+        when they do (it lies in front of every camera, in its image and range); else, or with
+        ``capture_volume`` 'data', the bounds of all the views' depth."""
         half = np.asarray(self.cfg.box_size, float) / 2
         if self.cfg.box_center is not None:
             centre = np.asarray(self.cfg.box_center, float)
-        elif on_floor:
+            return centre - half, centre + half, 'fixed'
+        if on_floor:
             centre = np.array([0.0, 0.0, half[2] - FLOOR_SLACK])
-        else:
-            try:
-                centre = convergence_point([v.T_world_camera for v in views])
-            except ValueError:   # one camera (or all aimed alike): the middle of what it sees
-                T, depth = views[0].T_world_camera, views[0].depth_mm
-                ahead = float(np.median(depth[depth > 0])) / 1000 if np.any(depth > 0) else 1.5
-                centre = T[:3, 3] + T[:3, 2] * ahead
-        return centre - half, centre + half
+            return centre - half, centre + half, 'studio floor'
+        centre = None if self.cfg.capture_volume == 'data' else converging_point(views, self.cfg.depth_max)
+        if centre is not None:
+            return centre - half, centre + half, 'converging cameras'
+        points = np.vstack([sampled_depth_points(v, self.cfg.depth_max) for v in views])
+        if not len(points):
+            return -half, half, 'no depth'
+        margin = self.cfg.trunc_voxels * self.cfg.voxel_size
+        return points.min(axis=0) - margin, points.max(axis=0) + margin, 'depth bounds'
 
     def integrate(self, volume: o3d.t.geometry.VoxelBlockGrid, view: CameraView, box: tuple[np.ndarray, np.ndarray]
                   ) -> int:
@@ -391,18 +410,69 @@ class TsdfFusion:
         if not views:
             raise ValueError('no camera to fuse')
         t0 = time.perf_counter()
-        box = self.capture_box(views, on_floor)
+        *box, source = self.capture_volume(views, on_floor)
+        left_out = depth_left_out(views, box, self.cfg.depth_max)
         volume = self.empty_volume()
         seen = sum(self.integrate(volume, view, box) > 0 for view in views)
         t1 = time.perf_counter()
         if seen == 0:
             # An empty stage is a state, not a failure: an empty model the caller reports.
             empty = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32)
-            return FusedModel(*empty, [v.name for v in views], {'integrate': (t1 - t0) * 1e3, 'extract': 0.0})
+            return FusedModel(*empty, [v.name for v in views], {'integrate': (t1 - t0) * 1e3, 'extract': 0.0},
+                              left_out, source)
         vertices, colors, triangles = self.extract(volume, box, seen)
         t2 = time.perf_counter()
         return FusedModel(vertices, colors, triangles, [v.name for v in views],
-                          {'integrate': (t1 - t0) * 1e3, 'extract': (t2 - t1) * 1e3})
+                          {'integrate': (t1 - t0) * 1e3, 'extract': (t2 - t1) * 1e3}, left_out, source)
+
+
+DEPTH_SAMPLE_STRIDE = 8     # every 8th pixel each way: the box and the left-out share, at ~0.1 ms a camera
+
+
+@lru_cache(maxsize=64)
+def _sample_rays(model: CameraModel, stride: int) -> np.ndarray:
+    rays = model.pixel_rays()[::stride, ::stride].astype(np.float32)
+    rays.flags.writeable = False
+    return rays
+
+
+def sampled_depth_points(view: CameraView, depth_max: float | None = None,
+                         stride: int = DEPTH_SAMPLE_STRIDE) -> np.ndarray:
+    """(N, 3) world points of every ``stride``-th depth pixel each way (within ``depth_max``)."""
+    depth = view.depth_mm[::stride, ::stride].astype(np.float32) / 1000
+    valid = depth > 0
+    if depth_max is not None:
+        valid &= depth <= depth_max
+    local = _sample_rays(view.depth_model, stride)[valid] * depth[valid, None]
+    return transform_points(view.T_world_camera, local)
+
+
+def depth_left_out(views: list[CameraView], box, depth_max: float) -> float:
+    """The share of the views' depth (sampled) beyond ``depth_max`` or outside ``box``."""
+    total = kept = 0
+    for view in views:
+        total += int(np.count_nonzero(view.depth_mm[::DEPTH_SAMPLE_STRIDE, ::DEPTH_SAMPLE_STRIDE]))
+        points = sampled_depth_points(view, depth_max)
+        kept += int(np.count_nonzero(np.all((points >= box[0]) & (points <= box[1]), axis=1)))
+    return 1.0 - kept / total if total else 0.0
+
+
+def converging_point(views: list[CameraView], depth_max: float) -> np.ndarray | None:
+    """The point the cameras converge on, or None when they do not: it must lie in front of
+    every camera within ``depth_max`` and inside its image (a ring of cameras round a subject;
+    not a camera moved through a room, nor one camera alone)."""
+    try:
+        point = convergence_point([v.T_world_camera for v in views])
+    except ValueError:
+        return None
+    for v in views:
+        local = transform_points(invert(v.T_world_camera), point[None])[0]
+        if not 0 < local[2] <= depth_max:
+            return None
+        u, w = v.depth_model.project(local[None])[0]
+        if not (0 <= u < v.depth_model.width and 0 <= w < v.depth_model.height):
+            return None
+    return point
 
 
 def effective_weight_threshold(weight_threshold: float, cameras: int) -> float:

@@ -165,6 +165,11 @@ class ColorResponse:
         return {k: (list(map(list, v)) if k == 'crosstalk' else list(v) if isinstance(v, tuple) else v)
                 for k, v in d.items()}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> 'ColorResponse':
+        return cls(**{k: (tuple(map(tuple, v)) if k == 'crosstalk' else tuple(v) if isinstance(v, list) else v)
+                      for k, v in d.items()})
+
     def vignette(self, width: int, height: int) -> np.ndarray:
         return _vignette(width, height, *self.vignetting)
 
@@ -181,6 +186,25 @@ class ColorResponse:
         x = cv2.transform(x, np.asarray(self.crosstalk, np.float32))
         x = np.clip(x, 0.0, 1.0) ** np.float32(1.0 / self.gamma)
         return np.round(x * 255.0).astype(np.uint8)
+
+    def true_colors(self, rgb: np.ndarray, pixels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        """What the ideal camera (``IDEAL_RESPONSE``: unit gain and white balance, no crosstalk
+        or vignetting, gamma 2.2) records where this camera recorded ``rgb`` (N, 3 in [0, 1]) at
+        ``pixels`` (N, 2) of its ``size`` (width, height) image: the response inverted, noise
+        and blur aside; clipped values stay clipped."""
+        x = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0) ** self.gamma
+        x = x @ np.linalg.inv(np.asarray(self.crosstalk, np.float64)).T
+        x = x / (self.gain * np.asarray(self.white_balance))
+        width, height = size
+        u = pixels[:, 0] - (width - 1) / 2
+        v = pixels[:, 1] - (height - 1) / 2
+        r2 = (u ** 2 + v ** 2) / ((width / 2) ** 2 + (height / 2) ** 2)
+        a, b = self.vignetting
+        x = x / (1.0 - a * r2 - b * r2 ** 2)[:, None]
+        return np.clip(x, 0.0, 1.0) ** (1.0 / IDEAL_RESPONSE.gamma)
+
+
+IDEAL_RESPONSE = ColorResponse(gamma=2.2, read_noise=0.0, shot_noise=0.0, blur_sigma_px=0.0)
 
 
 @functools.lru_cache(maxsize=16)

@@ -30,6 +30,7 @@ from volcap_core.conversions import camera_model_to_info, numpy_to_image
 from volcap_core.poses import invert, matrix_from_list, matrix_to_list
 from volcap_core.rig import Rig
 from volcap_core.topics import CAPTURE
+from volcap_studio.render import ColorResponse
 from volcap_studio.studio import FramePlan, StudioRenderer, SynthConfig, make_rig, session_plan
 
 GT_VERSION = 1
@@ -188,6 +189,9 @@ class GroundTruth:
 
     def T_world_depth(self, camera: str) -> np.ndarray:
         return matrix_from_list(self.doc['cameras'][camera]['T_world_depth'])
+
+    def color_response(self, camera: str) -> ColorResponse:
+        return ColorResponse.from_dict(self.doc['cameras'][camera]['color_response'])
 
     def frames_in(self, phase: str) -> list[dict]:
         return [f for f in self.frames if f['phase'] == phase]

@@ -22,6 +22,7 @@ from volcap_studio import scene as sc
 from volcap_studio.render import CameraView, ColorResponse, DepthRender, SceneRaycaster, ToFModel
 
 SCENES = ('person', 'bunny')
+BOARD_LAYOUTS = ('sweep', 'pairs')
 PHASE_GAP_NS = 1_000_000_000
 START_NS = 1_700_000_000_000_000_000
 
@@ -31,6 +32,7 @@ class SynthConfig:
     cameras: int = 8
     frames: int = 10
     board_poses: int = 12
+    board_layout: str = 'sweep'    # sweep: turned through every direction; pairs: between neighbouring stands
     background_frames: int = 3
     scene: str = 'person'
     seed: int = 0
@@ -47,6 +49,8 @@ class SynthConfig:
             raise ValueError('need at least one camera')
         if min(self.frames, self.board_poses, self.background_frames) < 0:
             raise ValueError('frame counts must be >= 0')
+        if self.board_layout not in BOARD_LAYOUTS:
+            raise ValueError(f'unknown board layout {self.board_layout!r}; choose from {BOARD_LAYOUTS}')
         if self.scene not in SCENES:
             raise ValueError(f'unknown scene {self.scene!r}; choose from {SCENES}')
         needed = [('Azure Kinect calibration', self.k4a_calibration)]
@@ -110,21 +114,29 @@ def _vary(cam: CameraModel, rng, focal_rel: float, centre_px: float) -> CameraMo
 
 
 def board_poses(cfg: SynthConfig, board: BoardConfig, rng: np.random.Generator) -> list[np.ndarray]:
-    """T_studio_board for each calibration frame: the board turned towards every direction in
-    turn (so each camera sees it several times, and neighbouring stands see it together),
-    at two heights and tilts, with a little random placement."""
+    """T_studio_board for each calibration frame, at two heights and tilts, with a little random
+    placement. ``sweep``: the board turned towards every direction in turn (so each camera sees
+    it several times, and neighbouring stands see it together). ``pairs``: the way the
+    calibration service guides an operator: facing midway between two neighbouring stands, pair
+    after pair round the ring, so that every neighbouring pair shares views and the ring closes."""
     x0, y0, x1, y1 = board.extent
     centre_local = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    n_stands = (cfg.cameras + 1) // 2
     out = []
     for k in range(cfg.board_poses):
-        yaw = -np.pi / 2 + 2 * np.pi * k / max(cfg.board_poses, 1) + rng.normal(0, 0.05)
-        pitch = np.radians(12.0 if k % 2 == 0 else -8.0) + rng.normal(0, 0.05)
+        if cfg.board_layout == 'pairs':
+            yaw = -np.pi / 2 + 2 * np.pi * (k % n_stands + 0.5) / n_stands + rng.normal(0, 0.05)
+            high = (k + k // n_stands) % 2 == 0     # each pair high and low in turn
+        else:
+            yaw = -np.pi / 2 + 2 * np.pi * k / max(cfg.board_poses, 1) + rng.normal(0, 0.05)
+            high = k % 2 == 0
+        pitch = np.radians(12.0 if high else -8.0) + rng.normal(0, 0.05)
         facing = np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), np.sin(pitch)])
         z = -facing                                  # board z points into the board
         y = np.array([0.0, 0.0, -1.0]) - z * (-z[2])  # "down" in the board plane
         y /= np.linalg.norm(y)
         R = np.stack([np.cross(y, z), y, z], axis=1)
-        centre = np.array([0.0, 0.0, 1.35 if k % 2 == 0 else 0.95]) + 0.25 * facing * np.array([1, 1, 0]) \
+        centre = np.array([0.0, 0.0, 1.35 if high else 0.95]) + 0.25 * facing * np.array([1, 1, 0]) \
             + rng.normal(0, 0.05, 3)
         out.append(make_transform(R, centre - R @ centre_local))
     return out
