@@ -12,12 +12,8 @@ def _correspondence(args):
     return CorrespondenceConfig(min_fraction=0.0, **({'max_gradient': 0.0} if args.keep_edges else {}))
 
 
-def cmd_eval_color(args) -> int:
-    from volcap_eval.color import ColorEvalConfig, format_report, run
-    report = run(args.bag, args.calibration, ColorEvalConfig(frames=args.frames, correspondence=_correspondence(args),
-                                                             chart_free_model=args.chart_free_model),
-                 board_file=args.board, chart=not args.no_chart, neural=args.neural, figures=args.figures,
-                 progress=not args.quiet)
+def _print_report(report: dict, args) -> int:
+    from volcap_eval.color import format_report
     print(format_report(report))
     if 'table1_skipped' in report:
         print(f'chart table left out: {report["table1_skipped"]}')
@@ -29,21 +25,24 @@ def cmd_eval_color(args) -> int:
     return 0
 
 
+def cmd_eval_color(args) -> int:
+    from volcap_eval.color import ColorEvalConfig, run
+    report = run(args.bag, args.calibration, ColorEvalConfig(frames=args.frames, correspondence=_correspondence(args),
+                                                             chart_free_model=args.chart_free_model),
+                 board_file=args.board, chart=not args.no_chart, neural=args.neural, figures=args.figures,
+                 progress=not args.quiet)
+    return _print_report(report, args)
+
+
 def cmd_eval_color_frames(args) -> int:
-    from volcap_eval.color import ColorEvalConfig, evaluate_frames_color, format_report
+    from volcap_eval.color import ColorEvalConfig, evaluate_frames_color
     from volcap_eval.color_figures import write_color_figures
     report, extras = evaluate_frames_color(args.folder, args.intrinsics, args.views, args.seed,
                                            ColorEvalConfig(chart_free_model=args.chart_free_model), not args.quiet)
     if args.figures:
         report['figures'] = [str(p) for p in write_color_figures(args.figures, report, extras['views'],
                                                                  extras['mappings'], extras['models'])]
-    print(format_report(report))
-    if args.json:
-        write_json(args.json, report)
-        print(f'wrote {args.json}')
-    for f in report.get('figures', []):
-        print(f'wrote {f}')
-    return 0
+    return _print_report(report, args)
 
 
 def cmd_color_fit(args) -> int:
