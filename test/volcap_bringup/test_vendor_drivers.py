@@ -166,7 +166,8 @@ def test_a_bag_recorded_from_the_drivers_goes_through_the_offline_tools(calib_ba
         assert reader.topics['cam0/rgb/image_raw/compressed'] == 'sensor_msgs/msg/CompressedImage'
         assert not any(t.startswith('volcap/') for t in reader.topics)
     calibration = tmp_path / 'calibration.yaml'
-    assert main(['calibrate', str(vendor), '--out', str(calibration), '--quiet']) == 0
+    # two board poses: the calibration is weak by design, and used as it is
+    assert main(['calibrate', str(vendor), '--out', str(calibration), '--quiet', '--accept-weak']) == 0
     cal, gt = Calibration.load(calibration), GroundTruth(calib_bag)
     relative = invert(cal.cameras['cam0'].T_world_color) @ cal.cameras['cam1'].T_world_color
     truth = invert(gt.T_world_color('cam0')) @ gt.T_world_color('cam1')

@@ -12,6 +12,7 @@ from volcap_calib.board import BoardConfig, reference_srgb8, write_board
 from volcap_calib.calibrate import CalibrationConfig
 from volcap_calib.chart import ChartNotFound, find_color_checker
 from volcap_calib.color import component_differences, fit_camera_color, fit_model
+from volcap_calib.coverage import rig_coverage
 from volcap_calib.detect import BoardDetector, Detection, DetectionError, detect_chessboard
 from volcap_calib.extrinsics import (
     CalibrationError,
@@ -186,6 +187,60 @@ def test_solver_names_cameras_it_cannot_place():
     assert 'cam2' in e.value.cameras
 
 
+@pytest.mark.slow
+def test_predicted_pose_error_matches_the_spread_of_the_true_error():
+    """Over noise draws of a sparse capture (8 board poses), each camera's predicted RMS error
+    (Jacobian covariance) is within a factor of 2 of its true RMS error."""
+    T_true, models, _ = _ring_rig()
+    errors, predicted = {}, {}
+    for seed in range(8):
+        obs, _ = _observe(T_true, models, np.random.default_rng(100 + seed), views=8, noise_px=0.5)
+        result = solve_rig(obs, models, 'cam0')
+        for c, e in pose_errors(result.T_world_color, T_true, 'cam0').items():
+            if c != 'cam0':
+                errors.setdefault(c, []).append((e['rot_err_deg'], e['trans_err_mm']))
+                predicted.setdefault(c, []).append((result.cameras[c].rot_sigma_deg, result.cameras[c].trans_sigma_mm))
+    for c in errors:
+        ratio = np.mean(predicted[c], axis=0) / np.sqrt(np.mean(np.square(errors[c]), axis=0))
+        assert np.all((ratio > 0.5) & (ratio < 2.0)), (c, ratio)
+    assert result.cameras['cam0'].rot_sigma_deg in (None, 0.0)
+
+
+def _posed_observations(T_true, models, seen: dict[int, tuple[int, ...]]):
+    """Exact observations of board view v by the cameras ``seen[v]`` (the coverage only counts
+    shared views; its advice places the cameras by chaining their board poses)."""
+    obs, _ = _observe(T_true, models, np.random.default_rng(0), views=4)
+    detection = obs[0].detection
+    out = []
+    for v, cams in seen.items():
+        T_world_board = look_at((0.3 * np.cos(v), 0.3 * np.sin(v), 0.9), (0, 0, 1.1))
+        for i in cams:
+            out.append(Observation(f'cam{i}', v, detection, invert(T_true[f'cam{i}']) @ T_world_board, 0.1))
+    return out
+
+
+def test_coverage_finds_unlinked_and_chained_cameras_and_says_where_to_hold_the_board():
+    T_true, models, _ = _ring_rig()
+    cams = list(models)
+    ring = {v: (v // 2 % 6, (v // 2 + 1) % 6) for v in range(12)}       # every neighbouring pair, twice
+    closed = rig_coverage(_posed_observations(T_true, models, ring), cams, 'cam0')
+    assert closed.linked == cams and not closed.weak and not closed.advice
+    assert all(closed.cameras[c].paths == 2 for c in cams[1:]) and closed.cameras['cam3'].hops == 3
+    assert closed.summary().endswith('coverage complete')
+    # The ring opened between cam5 and cam0: the far cameras hang on one chain.
+    opened = rig_coverage(_posed_observations(T_true, models, {v: p for v, p in ring.items() if v < 10}), cams, 'cam0')
+    assert opened.linked == cams and set(opened.weak) == {'cam2', 'cam3', 'cam4', 'cam5'}
+    assert 'single chain of 5 links' in opened.weak['cam5'] and opened.cameras['cam5'].paths == 1
+    assert 'hold the board between cam5 and cam0 (both must see it).' in opened.advice
+    # cam3 shown the board alone, and cam4 once with cam3: neither is linked.
+    alone = {v: p for v, p in ring.items() if 3 not in p and 4 not in p} | {20: (3,), 21: (3, 4)}
+    apart = rig_coverage(_posed_observations(T_true, models, alone), cams, 'cam0')
+    assert apart.unlinked == ['cam3', 'cam4'] and 'none shared' in apart.weak['cam3']
+    assert 'show the board to cam3 together with a linked camera (cam0, cam1, cam2, cam5).' in apart.advice
+    # cam2 hangs on cam1 alone: paired with a well-placed camera it shares nothing with yet.
+    assert 'hold the board between cam2 and cam0 (both must see it).' in apart.advice
+
+
 def test_degenerate_views_are_refused():
     cam = CameraModel(640, 480, 500.0, 500.0, 320.0, 240.0)
     line = np.c_[np.linspace(0, 0.3, 6), np.zeros(6), np.zeros(6)]
@@ -341,9 +396,14 @@ def test_board_prints_at_true_scale(tmp_path):
 def test_cli_calibrate_and_eval(calib_bag, calib_bag_blind_camera, tmp_path):
     from volcap_bringup.cli import main
     out = tmp_path / 'calibration.yaml'
-    assert main(['calibrate', str(calib_bag), '--out', str(out), '--quiet', '--icp']) == 0
+    # One facing board pose cannot place cam1 within the target: written, flagged, exit 3 ...
+    assert main(['calibrate', str(calib_bag), '--out', str(out), '--quiet', '--icp']) == 3
     report = json.loads((tmp_path / 'calibration_report.json').read_text())
     assert set(report['cameras']) == {'cam0', 'cam1'}
+    assert 'cam1' in report['weak_cameras'] and report['coverage']['linked'] == ['cam0', 'cam1']
+    assert Calibration.load(out).cameras['cam1'].predicted_error['trans_mm'] > 2.0
+    # ... and accepted as it is on request.
+    assert main(['calibrate', str(calib_bag), '--out', str(out), '--quiet', '--accept-weak']) == 0
     assert 'no capture frame set 0' in report['icp']['skipped']   # board-only bag: board poses kept
     assert (tmp_path / 'calibration_poses.png').exists() and (tmp_path / 'calibration_colour.png').exists()
     before = out.read_text()

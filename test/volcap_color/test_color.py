@@ -118,3 +118,24 @@ def test_gain_baselines_recover_gains_and_the_tree_starts_at_the_centre():
     assert np.ptp(corrected) < np.ptp([linear_to_srgb(srgb_to_linear(rgb) * g)[0, 1] for g in gains.values()]) / 2
 
 
+
+
+def test_model_choice_is_the_simplest_family_that_fits_and_leaves_a_consistent_rig_alone():
+    from volcap_color.methods import choose_chart_free_model, consistency
+    cams = [f'cam{i}' for i in range(4)]
+    gains = {c: np.array(g) for c, g in zip(cams, [(1.0, 1.0, 1.0), (0.8, 0.9, 1.1), (1.2, 1.0, 0.85), (0.9, 1.1, 1)])}
+    by_gain = _synthetic_matches(cams, {c: (lambda g: lambda lin: lin * g)(g) for c, g in gains.items()})
+    assert choose_chart_free_model(by_gain, cams).model == 'gain'
+    crosstalk = {c: (lambda M: lambda lin: np.clip(lin @ M.T, 0, 1))(np.eye(3) * 0.85 + 0.05 * (i % 2) + 0.05)
+                 for i, c in enumerate(cams)}
+    by_matrix = _synthetic_matches(cams, crosstalk)
+    choice = choose_chart_free_model(by_matrix, cams)
+    assert choice.model == 'matrix_3x3', choice.scores
+    assert choice.scores['matrix_3x3']['de2000'] < 0.5 * choice.scores['gain']['de2000']
+    # A rig that already agrees (sensor noise only): whatever is chosen does not make it worse.
+    rng = np.random.default_rng(4)
+    agree = _synthetic_matches(cams, {c: (lambda lin: np.clip(lin + rng.normal(0, 0.004, lin.shape), 0, 1))
+                                      for c in cams})
+    choice = choose_chart_free_model(agree, cams)
+    before = consistency(agree, None)[0]
+    assert choice.scores[choice.model]['de2000'] <= before * 1.02, choice.scores

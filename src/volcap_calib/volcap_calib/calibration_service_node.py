@@ -239,7 +239,8 @@ class CalibrationService(Node):
         if summary != self.coverage_summary and observations:
             self.get_logger().info(f'board coverage: {summary}')
             self.coverage_summary = summary
-        self.diagnostics.report('ok', f'{observations} board observations in {views} frame sets; {summary}',
+        # The counts end the message: tools and tests read "... in N frame sets" from its end.
+        self.diagnostics.report('ok', f'{summary}; {observations} board observations in {views} frame sets',
                                 observations=observations, frame_sets=views, queued=self.worker.pending,
                                 dropped=self.worker.dropped, linked=','.join(coverage.linked),
                                 unlinked=','.join(coverage.unlinked), weak=','.join(coverage.weak),

@@ -63,8 +63,7 @@ def rig_coverage(observations: list[Observation], cameras: list[str], reference:
 
     A camera is weak when it is unlinked, when fewer than ``min_shared_views`` of its views are
     shared with linked cameras, or when a single chain of two or more links carries it (no loop
-    closes on it). Advice names the camera to pair it with: the nearest well-linked camera by
-    the chained first guess of the poses, else the camera it already shares most with."""
+    closes on it). ``advice_for`` says what to show next."""
     views_of: dict[str, set[int]] = {c: set() for c in cameras}
     for o in observations:
         if o.camera in views_of:
@@ -135,7 +134,9 @@ def _edge_disjoint_paths(partners: dict[str, dict[str, int]], source: str, sink:
 
 
 def advice_for(observations: list[Observation], coverage: Coverage) -> list[str]:
-    """Where to hold the board next, one sentence per weak camera."""
+    """Where to hold the board next, one sentence per weak camera: a linked one is paired with
+    the nearest well-placed camera it shares no views with yet (closing a loop), by the chained
+    first guess of the poses; an unlinked one, having no pose yet, with any linked camera."""
     report, weak, reference = coverage.cameras, coverage.weak, coverage.reference
     if not weak:
         return []
@@ -147,17 +148,16 @@ def advice_for(observations: list[Observation], coverage: Coverage) -> list[str]
         positions = {c: T[:3, 3] for c, T in T_cam.items()}
     strong = [c for c in linked if c not in weak]
     out = []
-    for c, why in weak.items():
-        if c in positions and strong:
-            others = [p for p in strong if p != c]
-            partner = min(others, key=lambda p: np.linalg.norm(positions[p] - positions[c])) if others else reference
-        elif report[c].partners:
-            partner = next(iter(report[c].partners))
-        else:
-            partner = None
-        if partner is None:
-            out.append(f'show the board to {c} together with any linked camera.')
-        else:
-            out.append(f'hold the board between {c} and {partner} (both must see it).')
+    for c in weak:
+        if c not in positions:
+            # No pose relative to the linked cameras yet: any linked neighbour will do.
+            out.append(f'show the board to {c} together with a linked camera ({", ".join(linked)}).'
+                       if report[c].views else f'show the board to {c} together with any linked camera.')
+            continue
+        # Pair it with a well-placed camera it does not already share views with (that closes
+        # a loop), else with its nearest well-placed one.
+        others = [p for p in strong if p != c and p not in report[c].partners] or [p for p in strong if p != c]
+        partner = min(others, key=lambda p: np.linalg.norm(positions[p] - positions[c])) if others else reference
+        out.append(f'hold the board between {c} and {partner} (both must see it).')
     return out
 

@@ -33,6 +33,8 @@ Mapping = Callable[[np.ndarray], np.ndarray]
 CHART_FREE_MODELS = ('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4')
 SELECTABLE_MODELS = ('gain', 'matrix_3x3', 'affine_3x4')     # simplest first
 DARK_L = 25.0          # CIELAB L* below which a correspondence counts as dark
+SATURATED_CHROMA = 25.0     # CIELAB C*ab (as recorded) above which a colour counts as saturated
+CONTRAST_KEPT = 0.98   # share of the simplest model's lightness spread a richer chosen model must keep
 
 
 @dataclass
@@ -415,31 +417,66 @@ def consistency(matches: dict[tuple[str, str], Matches], models: dict[str, Color
             float(dark_de.mean()) if len(dark_de) else float('nan'))
 
 
+def contrast(matches: dict[tuple[str, str], Matches], models: dict[str, ColorModel] | None
+             ) -> tuple[float, float]:
+    """(mean CIELAB chroma of the saturated colours, standard deviation of L*) over both sides of
+    every pair, ``models`` applied (None: as recorded). Saturated is judged on the recorded
+    colours, so every set of models is measured on the same pixels."""
+    sides = [(c, colors) for m in matches.values() for c, colors in ((m.a, m.colors_a), (m.b, m.colors_b))
+             if len(colors)]
+    if not sides:
+        return float('nan'), float('nan')
+    recorded = srgb_to_lab(np.vstack([colors for _, colors in sides]))
+    mapped = srgb_to_lab(np.clip(np.vstack([models[c].apply(colors) for c, colors in sides]), 0, 1)) \
+        if models else recorded
+    saturated = np.hypot(recorded[:, 1], recorded[:, 2]) >= SATURATED_CHROMA
+    chroma = float(np.hypot(mapped[saturated, 1], mapped[saturated, 2]).mean()) if saturated.any() else float('nan')
+    return chroma, float(mapped[:, 0].std())
+
+
 def choose_chart_free_model(matches: dict[tuple[str, str], Matches], cameras: list[str], reference: str = 'mean',
                             base: dict[str, ColorModel] | None = None,
                             anchor: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
                             candidates: tuple[str, ...] = SELECTABLE_MODELS, tolerance: float = 0.05,
                             seed: int = 0) -> ModelChoice:
     """The model family for this rig, chosen on correspondences held out from the fit (half of
-    each pair's): the simplest candidate within ``tolerance`` (relative) of the best held-out
-    CIEDE2000 that does not make the dark correspondences worse than they were, or the identity
-    when no candidate improves on the untouched colours (a rig already consistent). ``base``,
-    ``anchor``: as ``chart_free_fit`` (the untouched colours are then the base models')."""
+    each pair's): among the candidates that keep the colours' contrast (the spread of CIELAB L*
+    within ``CONTRAST_KEPT`` of the simplest candidate's), the simplest within ``tolerance``
+    (relative) of the best held-out CIEDE2000 that does not make the dark correspondences worse
+    than they were; the identity when no candidate improves on the untouched colours (a rig
+    already consistent). ``base``, ``anchor``: as ``chart_free_fit`` (the untouched colours are
+    then the base models')."""
     fit, check = split_matches(matches, seed=seed)
-    before, before_dark = consistency(check, base)
-    scores = {'identity': {'de2000': before, 'de2000_dark': before_dark}}
+
+    def score(models):
+        de, dark = consistency(check, models)
+        chroma, spread = contrast(check, models)
+        return {'de2000': de, 'de2000_dark': dark, 'chroma': chroma, 'lightness_std': spread}
+    scores = {'identity': score(base)}
+    before = scores['identity']
     for model in candidates:
-        de, dark = consistency(check, chart_free_fit(fit, cameras, model, reference, base=base, anchor=anchor,
-                                                     seed=seed))
-        scores[model] = {'de2000': de, 'de2000_dark': dark}
-    best = min(scores[m]['de2000'] for m in candidates)
-    if not best < before:
-        return ModelChoice('identity', scores, f'no model improves on the untouched colours ({before:.2f})')
-    for model in candidates:
+        scores[model] = score(chart_free_fit(fit, cameras, model, reference, base=base, anchor=anchor, seed=seed))
+
+    def flattens(s):
+        # Corresponding colours also agree when lightness is pulled together (blacks lifted,
+        # highlights pressed): with mis-registered correspondences a flexible model gains
+        # held-out CIEDE2000 that way and loses the truth. The simplest candidate (per-channel
+        # gains) cannot do that, so its spread is the yardstick.
+        return s['lightness_std'] < CONTRAST_KEPT * scores[candidates[0]]['lightness_std']
+
+    def darkens(s):
+        return s['de2000_dark'] > before['de2000_dark']
+    admissible = candidates[:1] + tuple(m for m in candidates[1:] if not flattens(scores[m]))
+    best = min(scores[m]['de2000'] for m in admissible)
+    if not best < before['de2000']:
+        return ModelChoice('identity', scores, f'no model improves on the untouched colours ({before["de2000"]:.2f})')
+    for model in admissible:
         s = scores[model]
-        if s['de2000'] <= best * (1 + tolerance) and not s['de2000_dark'] > before_dark:
+        if s['de2000'] <= best * (1 + tolerance) and not darkens(s):
+            flattening = [m for m in candidates if m not in admissible]
             return ModelChoice(model, scores, f'simplest within {tolerance:.0%} of the best held-out CIEDE2000 '
-                                              f'({best:.2f}) that keeps dark pixels ({before_dark:.2f} -> '
-                                              f'{s["de2000_dark"]:.2f})')
-    model = min(candidates, key=lambda m: scores[m]['de2000'])
+                                              f'({best:.2f}) that keeps dark pixels ({before["de2000_dark"]:.2f} -> '
+                                              f'{s["de2000_dark"]:.2f})' +
+                               (f'; left out for flattening lightness: {", ".join(flattening)}' if flattening else ''))
+    model = min(admissible, key=lambda m: scores[m]['de2000'])
     return ModelChoice(model, scores, 'every candidate worsens dark pixels; the best held-out one')

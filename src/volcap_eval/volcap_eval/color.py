@@ -48,6 +48,7 @@ from volcap_color.correspondence import (
     split_frame_sets,
 )
 from volcap_color.methods import (
+    SATURATED_CHROMA,
     Mapping,
     ModelChoice,
     PixelMapping,
@@ -109,7 +110,6 @@ def pair_scores(matches: dict[tuple[str, str], Matches], mappings: dict[str, Map
     return out
 
 
-SATURATED_CHROMA = 25.0     # CIELAB C*ab of the untouched colour above which a pixel counts as saturated
 TruthFn = Callable[[str, np.ndarray, np.ndarray], np.ndarray]   # (camera, colours, pixels) -> true colours
 
 
@@ -281,7 +281,8 @@ def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dic
     thin = merge_matches(scored_sets, cfg.fit_min_fraction)
     scored_keys = {f'{a}-{b}' for a, b in scored}
     mappings, skipped, models, chart_free = method_mappings(fit, cameras, calibration, chart_samples, cfg)
-    truth = synthetic_truth(bag, {v.name: (v.camera.width, v.camera.height) for views in sets for v in views})
+    sizes = {v.name: (v.camera.width, v.camera.height) for views in sets for v in views}
+    truth = synthetic_truth(bag, sizes)
     neural_info, luts = None, {}
     if neural is not None:
         extra, manifest, luts = neural_mappings(neural, [v for views in sets for v in views], cameras)
@@ -290,7 +291,7 @@ def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dic
         neural_info = {'models': str(neural), 'trained_on': trained, 'reference': manifest['reference'],
                        'scored_sets_trained_on': sorted(set(trained) & set(score_idx)),
                        'export_error': manifest.get('export_error', {})}
-    methods, all_pairs, pairs = score_methods(mappings, thin, scored_keys, truth, cfg, progress)
+    methods, all_pairs, pairs = score_methods(mappings, thin, scored_keys, truth, sizes, cfg, progress)
     table1 = {name: chart_table(chart_samples, m) for name, m in mappings.items()} if chart_samples else {}
     report = {'bag': str(bag), 'cameras': cameras, 'frame_sets': {'fit': fit_idx, 'scored': score_idx,
                                                                   'held_out': score_idx != fit_idx},
@@ -304,11 +305,21 @@ def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dic
     return report, {'views': sets[score_idx[0]], 'mappings': mappings, 'models': models, 'region_luts': luts}
 
 
+def _truth_mapping(truth: TruthFn, camera: str, size: tuple[int, int]) -> PixelMapping:
+    scale = np.asarray(size, np.float64)
+    return PixelMapping(lambda rgb, xy: truth(camera, rgb, xy * scale - 0.5), size)
+
+
 def score_methods(mappings: dict[str, dict[str, Mapping]], matches: dict[tuple[str, str], Matches],
-                  scored_keys: set[str], truth: TruthFn | None, cfg: ColorEvalConfig, progress: bool = True
-                  ) -> tuple[dict, dict, dict]:
+                  scored_keys: set[str], truth: TruthFn | None, sizes: dict[str, tuple[int, int]],
+                  cfg: ColorEvalConfig, progress: bool = True) -> tuple[dict, dict, dict]:
     """(summary over the ``scored_keys`` pairs, summary over all pairs, per-pair scores) of every
-    method, each summary with the chroma check and, given ``truth``, the scores against it."""
+    method, each summary with the chroma check and, given ``truth``, the scores against it and a
+    ``true_colours`` row: every camera mapped to its true colours, the perfect harmoniser, whose
+    pairwise scores are the floor the correspondences allow (below it a method is flattening
+    colours to agree, not correcting cameras)."""
+    if truth is not None:
+        mappings = {**mappings, 'true_colours': {c: _truth_mapping(truth, c, size) for c, size in sizes.items()}}
     methods, all_pairs, pairs = {}, {}, {}
     for name in tqdm(mappings, desc='scoring methods', unit='method', disable=not progress):
         pairs[name] = pair_scores(matches, mappings[name], cfg.max_scored_per_pair, cfg.seed)
@@ -364,7 +375,7 @@ def evaluate_frames_color(folder: str | Path, intrinsics: str | Path | None = No
 
     def truth(camera, colors, pixels):
         return responses[camera].true_colors(colors, pixels, sizes[camera])
-    methods, all_pairs, pairs = score_methods(mappings, scored, scored_keys, truth, cfg, progress)
+    methods, all_pairs, pairs = score_methods(mappings, scored, scored_keys, truth, sizes, cfg, progress)
     report = {'folder': str(folder), 'cameras': cameras, 'seed': seed,
               'frame_sets': {'fit': [0], 'scored': [0], 'held_out': False},
               'methods': methods, 'methods_all_pairs': all_pairs, 'skipped': skipped, 'pairs': pairs,
@@ -397,6 +408,9 @@ def format_report(report: dict) -> str:
                          f"{f(s.get('chroma_before'), 1)} -> {f(s.get('chroma_after'), 1)} |"
                          + (f" {f(s.get('truth_de2000'))} | {f(s.get('truth_de2000_exposure'))} |" if truth else ''))
         lines.append('')
+    if 'true_colours' in report['methods']:
+        lines.append('true_colours: every camera mapped to its true colours (a perfect harmoniser); its pairwise '
+                     'scores are the floor these correspondences allow: below it a method agrees by flattening colours')
     choice = report.get('chart_free_model')
     if choice:
         lines.append(f"volcap_chart_free model: {choice['model']} ({choice['why']})")

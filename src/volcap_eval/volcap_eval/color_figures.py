@@ -15,24 +15,34 @@ GRID_WIDTH = 320          # pixels per camera tile
 
 
 def bars_figure(path: str | Path, report: dict) -> Path:
-    """Mean (with standard deviation over pairs) CIEDE2000 and PSNR of every method."""
+    """Mean (with standard deviation over pairs) CIEDE2000 and PSNR of every method, over the
+    paper's pairs (every pair when none reaches its overlap), and the scores against the true
+    colours where they are known."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    names = [n for n, s in report['methods'].items() if s['pairs']]
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
-    for ax, key, label in ((axes[0], 'de2000', 'CIEDE2000 (lower is better)'), (axes[1], 'psnr', 'PSNR dB (higher is better)')):
-        means = [report['methods'][n][f'{key}_mean'] for n in names]
-        stds = [report['methods'][n][f'{key}_std'] for n in names]
-        colors = ['tab:green' if n.startswith(('volcap', 'neural')) else 'tab:grey' if n == 'original' else 'tab:blue' for n in names]
+    key = 'methods' if any(s['pairs'] for s in report['methods'].values()) else 'methods_all_pairs'
+    methods = report[key]
+    names = [n for n, s in methods.items() if s['pairs']]
+    panels = [('de2000_mean', 'de2000_std', 'pairwise CIEDE2000 (lower is better)'),
+              ('psnr_mean', 'psnr_std', 'pairwise PSNR dB (higher is better)')]
+    if any(methods[n].get('truth_de2000') is not None for n in names):
+        panels.append(('truth_de2000', None, 'CIEDE2000 to the true colours (lower is better)'))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 4.8))
+    for ax, (mean_key, std_key, label) in zip(axes, panels):
+        means = [np.nan if methods[n].get(mean_key) is None else methods[n][mean_key] for n in names]
+        stds = [methods[n][std_key] for n in names] if std_key else None
+        colors = ['tab:green' if n.startswith(('volcap', 'neural')) else 'tab:grey' if n == 'original' else
+                  'tab:olive' if n == 'true_colours' else 'tab:blue' for n in names]
         ax.bar(np.arange(len(names)), means, yerr=stds, color=colors, capsize=3)
         ax.set_xticks(np.arange(len(names)), names, rotation=40, ha='right', fontsize=8)
         ax.set_title(label)
         ax.grid(axis='y', alpha=0.3)
         for i, v in enumerate(means):
             ax.annotate(f'{v:.2f}', (i, v), ha='center', va='bottom', fontsize=7, xytext=(0, 2), textcoords='offset points')
-    pairs = max(report['methods'][n]['pairs'] for n in names) if names else 0
-    fig.suptitle(f'pairwise colour consistency over {pairs} camera pairs')
+    pairs = max(methods[n]['pairs'] for n in names) if names else 0
+    fig.suptitle(f'colour methods over {pairs} camera pairs' +
+                 (' (every pair: none reaches the paper\'s overlap)' if key == 'methods_all_pairs' else ''))
     out = save_figure(fig, path)
     plt.close(fig)
     return out
