@@ -37,8 +37,10 @@ def cmd_eval_color(args) -> int:
 def cmd_eval_color_frames(args) -> int:
     from volcap_eval.color import ColorEvalConfig, evaluate_frames_color
     from volcap_eval.color_figures import write_color_figures
+    harmonise = (args.harmonise, harmonise_config(args)) if args.harmonise else None
     report, extras = evaluate_frames_color(args.folder, args.intrinsics, args.views, args.seed,
-                                           ColorEvalConfig(chart_free_model=args.chart_free_model), not args.quiet)
+                                           ColorEvalConfig(chart_free_model=args.chart_free_model), not args.quiet,
+                                           harmonise)
     if args.figures:
         report['figures'] = [str(p) for p in write_color_figures(args.figures, report, extras['views'],
                                                                  extras['mappings'], extras['models'])]
@@ -95,6 +97,35 @@ def cmd_harmonise(args) -> int:
     return 0
 
 
+def harmonise_arguments(h, seed: bool = True) -> None:
+    """The training settings of ``volcap harmonise`` (HarmoniseConfig), shared by ``eval color-frames``
+    (whose own ``--seed`` seeds the training too: ``seed=False``)."""
+    from volcap_color.neural_config import HarmoniseConfig
+    d = HarmoniseConfig()
+    h.add_argument('--points', type=int, default=d.points, help='surface samples for E')
+    h.add_argument('--field-epochs', type=int, default=d.field_epochs)
+    h.add_argument('--field-batch', type=int, default=d.field_batch)
+    h.add_argument('--field-lr', type=float, default=d.field_lr)
+    h.add_argument('--field-lr-final', type=float, default=d.field_lr_final,
+                   help='decay the learning rate exponentially to this by the last epoch (default: constant)')
+    h.add_argument('--mapper-points', type=int, default=d.mapper_points, help='pixels per camera for its D')
+    h.add_argument('--mapper-epochs', type=int, default=d.mapper_epochs)
+    h.add_argument('--mapper-batch', type=int, default=d.mapper_batch)
+    h.add_argument('--mapper-lr', type=float, default=d.mapper_lr)
+    h.add_argument('--mapper-lr-final', type=float, default=d.mapper_lr_final)
+    h.add_argument('--background', type=float, default=d.background,
+                   help='pixels without a surface point added to each D, per pixel with one, aimed at the camera\'s '
+                        'affine map onto the reference (0: the paper, D sees the subject only)')
+    h.add_argument('--reference', default=d.reference, help='camera whose colours D reproduces, or mean (E '
+                                                            'averaged over every camera)')
+    h.add_argument('--lut-colors', '--lut-colours', type=int, default=d.lut_colors, help='live form: colour nodes per axis')
+    h.add_argument('--lut-grid', default='x'.join(map(str, d.lut_grid)), help='live form: image nodes, NXxNY')
+    if seed:
+        h.add_argument('--seed', type=int, default=d.seed)
+    h.add_argument('--device', choices=('auto', 'cpu', 'cuda'), default=d.device)
+    h.add_argument('--precision', choices=('auto', 'bf16', 'fp32'), default=d.precision)
+
+
 def add_parsers(sub, eval_sub) -> None:
     def common(p):
         p.add_argument('bag')
@@ -121,11 +152,14 @@ def add_parsers(sub, eval_sub) -> None:
     r.add_argument('folder', help='frame-NNNNNN.{color.png,depth.png,pose.txt} (e.g. ../shared/data/rgbd_box)')
     r.add_argument('--intrinsics', help='3x3 intrinsic matrix (default FOLDER/intrinsics.K.txt)')
     r.add_argument('--views', type=int, default=8, help='frames used as the cameras of one frame set')
-    r.add_argument('--seed', type=int, default=0, help='seed of the colour responses')
+    r.add_argument('--seed', type=int, default=0, help='seed of the colour responses (and of --harmonise)')
     r.add_argument('--chart-free-model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'))
     r.add_argument('--json', help='write the report here')
     r.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
     r.add_argument('--quiet', action='store_true')
+    r.add_argument('--harmonise', metavar='DIR', help='also train the neural method (volcap harmonise, settings '
+                                                      'below) on the views into DIR and score it')
+    harmonise_arguments(r, seed=False)
     r.set_defaults(func=cmd_eval_color_frames)
 
     f = sub.add_parser('color-fit', aliases=['colour-fit'], help='per-camera colour models from correspondences between the cameras')
@@ -138,34 +172,12 @@ def add_parsers(sub, eval_sub) -> None:
                         'the bag\'s board views) or a camera name')
     f.set_defaults(func=cmd_color_fit)
 
-    from volcap_color.neural_config import HarmoniseConfig
-    d = HarmoniseConfig()
     h = sub.add_parser('harmonise', help='train paper 001\'s colour field E and per-camera networks D (torch), '
                                          'and export them for color_corrector')
     common(h)
     h.add_argument('--out', required=True, help='folder for the models (created)')
     h.add_argument('--train-sets', choices=('even', 'all'), default='even',
                    help='train on the 1st, 3rd, ... frame set (the colour evaluation scores the others) or on all')
-    h.add_argument('--points', type=int, default=d.points, help='surface samples for E')
-    h.add_argument('--field-epochs', type=int, default=d.field_epochs)
-    h.add_argument('--field-batch', type=int, default=d.field_batch)
-    h.add_argument('--field-lr', type=float, default=d.field_lr)
-    h.add_argument('--field-lr-final', type=float, default=d.field_lr_final,
-                   help='decay the learning rate exponentially to this by the last epoch (default: constant)')
-    h.add_argument('--mapper-points', type=int, default=d.mapper_points, help='pixels per camera for its D')
-    h.add_argument('--mapper-epochs', type=int, default=d.mapper_epochs)
-    h.add_argument('--mapper-batch', type=int, default=d.mapper_batch)
-    h.add_argument('--mapper-lr', type=float, default=d.mapper_lr)
-    h.add_argument('--mapper-lr-final', type=float, default=d.mapper_lr_final)
-    h.add_argument('--background', type=float, default=d.background,
-                   help='pixels without a surface point added to each D, per pixel with one, aimed at the camera\'s '
-                        'affine map onto the reference (0: the paper, D sees the subject only)')
-    h.add_argument('--reference', default=d.reference, help='camera whose colours D reproduces, or mean (E '
-                                                            'averaged over every camera)')
-    h.add_argument('--lut-colors', '--lut-colours', type=int, default=d.lut_colors, help='live form: colour nodes per axis')
-    h.add_argument('--lut-grid', default='x'.join(map(str, d.lut_grid)), help='live form: image nodes, NXxNY')
-    h.add_argument('--seed', type=int, default=d.seed)
-    h.add_argument('--device', choices=('auto', 'cpu', 'cuda'), default=d.device)
-    h.add_argument('--precision', choices=('auto', 'bf16', 'fp32'), default=d.precision)
+    harmonise_arguments(h)
     h.add_argument('--resume', action='store_true', help='carry on from the checkpoint in --out')
     h.set_defaults(func=cmd_harmonise)

@@ -65,6 +65,7 @@ from volcap_color.methods import (
     propagate,
     split_matches,
 )
+from volcap_color.neural_config import HarmoniseConfig
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.color import ColorModel, delta_e2000, linear_to_lab, srgb_to_lab, srgb_to_linear
 from volcap_studio.render import ColorResponse
@@ -358,10 +359,14 @@ def distorted_frame_views(folder: str | Path, intrinsics: str | Path, count: int
 
 
 def evaluate_frames_color(folder: str | Path, intrinsics: str | Path | None = None, count: int = 8, seed: int = 0,
-                          cfg: ColorEvalConfig = ColorEvalConfig(), progress: bool = True) -> tuple[dict, dict]:
+                          cfg: ColorEvalConfig = ColorEvalConfig(), progress: bool = True,
+                          harmonise: tuple[str | Path, HarmoniseConfig] | None = None) -> tuple[dict, dict]:
     """`volcap eval color-frames`: the colour methods on real texture. One frame set of
     ``count`` distorted real views (``distorted_frame_views``); every pair's correspondences
-    are split at random, one half fitted, the other scored; the truth is the undistorted image."""
+    are split at random, one half fitted, the other scored; the truth is the undistorted image.
+    With ``harmonise`` (folder, settings) the neural method is trained on the views too (every
+    pixel with depth, as `volcap harmonise --train-sets all`) and scored as ``neural`` and
+    ``neural_live``."""
     intrinsics = intrinsics or Path(folder) / 'intrinsics.K.txt'
     views, responses = distorted_frame_views(folder, intrinsics, count, seed)
     cameras = [v.name for v in views]
@@ -372,6 +377,17 @@ def evaluate_frames_color(folder: str | Path, intrinsics: str | Path | None = No
                                                        zip(cameras, views)})
     mappings, skipped, models, chart_free = method_mappings(fit, cameras, calibration, None, cfg)
     sizes = {v.name: (v.camera.width, v.camera.height) for v in views}
+    neural_info, luts = None, {}
+    if harmonise is not None:
+        from volcap_color import neural
+        out_dir, harmonise_cfg = harmonise
+        trained = neural.run([views], cameras, harmonise_cfg, out_dir, 'all', progress=progress,
+                             sources={'folder': str(folder), 'seed': seed})
+        extra, _, luts = neural_mappings(out_dir, views, cameras)
+        mappings.update(extra)
+        neural_info = {'models': str(out_dir), 'trained_on': [0], 'reference': harmonise_cfg.reference,
+                       'seconds': trained.manifest['seconds'],
+                       'scored_sets_trained_on': [], 'export_error': trained.manifest.get('export_error', {})}
 
     def truth(camera, colors, pixels):
         return responses[camera].true_colors(colors, pixels, sizes[camera])
@@ -381,12 +397,12 @@ def evaluate_frames_color(folder: str | Path, intrinsics: str | Path | None = No
               'methods': methods, 'methods_all_pairs': all_pairs, 'skipped': skipped, 'pairs': pairs,
               'correspondences': {'fit_pairs': {f'{a}-{b}': len(m) for (a, b), m in fit.items()},
                                   'scored_pairs': {f'{a}-{b}': len(m) for (a, b), m in scored.items()}},
-              'table1': {}, 'neural': None, 'chart_free_model': chart_free.to_dict(),
+              'table1': {}, 'neural': neural_info, 'chart_free_model': chart_free.to_dict(),
               'truth': 'the undistorted real images (each view\'s colour response inverted)',
               'responses': {c: r.to_dict() for c, r in responses.items()},
               'models': {name: {c: m.to_dict() for c, m in per.items()} for name, per in models.items()},
               'config': asdict(cfg)}
-    return report, {'views': views, 'mappings': mappings, 'models': models, 'region_luts': {}}
+    return report, {'views': views, 'mappings': mappings, 'models': models, 'region_luts': luts}
 
 
 def format_report(report: dict) -> str:
