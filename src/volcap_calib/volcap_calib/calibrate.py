@@ -56,9 +56,12 @@ class CalibrationConfig:
     min_patch_px: float = 12.0           # shortest patch side in the image to sample it
     patch_inner: float = 0.6             # fraction of the patch (per side) that is averaged
     max_chart_angle_deg: float = 70.0    # chart seen more obliquely than this is not sampled
-    # a camera whose predicted pose error exceeds these is flagged weak (the rig's target)
+    # the rig's target: a camera is flagged weak when weak_margin x its predicted RMS pose error
+    # exceeds it. The prediction is an RMS, so among several cameras one comes out beyond it: on
+    # synthetic studios the worst camera reached 2.2x the largest prediction (bench/calib_studios.py).
     max_rot_err_deg: float = 0.1
     max_trans_err_mm: float = 2.0
+    weak_margin: float = 2.0
 
 
 @dataclass
@@ -215,11 +218,12 @@ class Calibrator:
             if coverage.advice:
                 raise CalibrationError(f'{e}. Next: {" ".join(coverage.advice)}', e.cameras) from e
             raise
-        weak = {c: f'predicted error {r.rot_sigma_deg:.3f} deg / {r.trans_sigma_mm:.2f} mm (target '
-                   f'{self.cfg.max_rot_err_deg} deg / {self.cfg.max_trans_err_mm} mm)'
+        k = self.cfg.weak_margin
+        weak = {c: f'predicted error {r.rot_sigma_deg:.3f} deg / {r.trans_sigma_mm:.2f} mm RMS, {k:g}x that beyond '
+                   f'the target {self.cfg.max_rot_err_deg} deg / {self.cfg.max_trans_err_mm} mm'
                 for c, r in extrinsics.cameras.items()
-                if r.rot_sigma_deg is not None and (r.rot_sigma_deg > self.cfg.max_rot_err_deg
-                                                    or r.trans_sigma_mm > self.cfg.max_trans_err_mm)}
+                if r.rot_sigma_deg is not None and (k * r.rot_sigma_deg > self.cfg.max_rot_err_deg
+                                                    or k * r.trans_sigma_mm > self.cfg.max_trans_err_mm)}
         coverage = self.coverage(reference, weak)
         fits, color_errors = {}, {}
         illumination = self.illumination() if any(self.patches.values()) else {}

@@ -140,7 +140,8 @@ class CalibrateReport:
         for c, why in self.outcome.color_errors.items():
             out.append(f'  {c}: no colour model: {why}')
         if self.outcome.weak:
-            out.append(f'WEAK CALIBRATION: {", ".join(self.outcome.weak)} predicted beyond the target; '
+            out.append(f'WEAK CALIBRATION: {", ".join(self.outcome.weak)} may miss the target (predicted error, '
+                       'with its margin, beyond it); '
                        + ' '.join(self.outcome.calibration.extra.get('advice', [])))
         if self.icp and 'skipped' in self.icp:
             out.append(f'ICP skipped: {self.icp["skipped"]}; the board solution is kept')
