@@ -121,7 +121,7 @@ def test_gain_baselines_recover_gains_and_the_tree_starts_at_the_centre():
 
 
 def test_model_choice_is_the_simplest_family_that_fits_and_leaves_a_consistent_rig_alone():
-    from volcap_color.methods import choose_chart_free_model, consistency
+    from volcap_color.methods import choose_chart_free_model, held_out_scores
     cams = [f'cam{i}' for i in range(4)]
     gains = {c: np.array(g) for c, g in zip(cams, [(1.0, 1.0, 1.0), (0.8, 0.9, 1.1), (1.2, 1.0, 0.85), (0.9, 1.1, 1)])}
     by_gain = _synthetic_matches(cams, {c: (lambda g: lambda lin: lin * g)(g) for c, g in gains.items()})
@@ -137,5 +137,5 @@ def test_model_choice_is_the_simplest_family_that_fits_and_leaves_a_consistent_r
     agree = _synthetic_matches(cams, {c: (lambda lin: np.clip(lin + rng.normal(0, 0.004, lin.shape), 0, 1))
                                       for c in cams})
     choice = choose_chart_free_model(agree, cams)
-    before = consistency(agree, None)[0]
+    before = held_out_scores(agree, None)['de2000']
     assert choice.scores[choice.model]['de2000'] <= before * 1.02, choice.scores

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.sparse.csgraph import shortest_path
 
-from volcap_core.color import ColorModel, delta_e2000, srgb_to_lab, srgb_to_linear
+from volcap_core.color import ColorModel, srgb_to_lab, srgb_to_linear
 
 from .apply import pixel_centres
 from .correspondence import Matches
@@ -400,38 +400,35 @@ def split_matches(matches: dict[tuple[str, str], Matches], share: float = 0.5, s
     return first, second
 
 
-def consistency(matches: dict[tuple[str, str], Matches], models: dict[str, ColorModel] | None) -> tuple[float, float]:
-    """Mean CIEDE2000 between corresponding colours over every pair (``models`` applied; None:
-    as they are), over all correspondences and over the dark ones (L* < ``DARK_L``)."""
-    des, dark = [], []
-    for (a, b), m in matches.items():
-        if not len(m):
-            continue
-        ca = models[a].apply(m.colors_a) if models else m.colors_a
-        cb = models[b].apply(m.colors_b) if models else m.colors_b
-        de = delta_e2000(np.clip(ca, 0, 1), np.clip(cb, 0, 1))
-        des.append(de)
-        dark.append(de[srgb_to_lab(np.minimum(m.colors_a, m.colors_b))[:, 0] < DARK_L])
-    all_de, dark_de = np.concatenate(des) if des else np.zeros(0), np.concatenate(dark) if dark else np.zeros(0)
-    return (float(all_de.mean()) if len(all_de) else float('nan'),
-            float(dark_de.mean()) if len(dark_de) else float('nan'))
+def chroma(lab: np.ndarray) -> np.ndarray:
+    """CIELAB C*ab of (N, 3) L*a*b* rows."""
+    return np.hypot(lab[:, 1], lab[:, 2])
 
 
-def contrast(matches: dict[tuple[str, str], Matches], models: dict[str, ColorModel] | None
-             ) -> tuple[float, float]:
-    """(mean CIELAB chroma of the saturated colours, standard deviation of L*) over both sides of
-    every pair, ``models`` applied (None: as recorded). Saturated is judged on the recorded
-    colours, so every set of models is measured on the same pixels."""
-    sides = [(c, colors) for m in matches.values() for c, colors in ((m.a, m.colors_a), (m.b, m.colors_b))
-             if len(colors)]
-    if not sides:
-        return float('nan'), float('nan')
-    recorded = srgb_to_lab(np.vstack([colors for _, colors in sides]))
-    mapped = srgb_to_lab(np.clip(np.vstack([models[c].apply(colors) for c, colors in sides]), 0, 1)) \
-        if models else recorded
-    saturated = np.hypot(recorded[:, 1], recorded[:, 2]) >= SATURATED_CHROMA
-    chroma = float(np.hypot(mapped[saturated, 1], mapped[saturated, 2]).mean()) if saturated.any() else float('nan')
-    return chroma, float(mapped[:, 0].std())
+def held_out_scores(matches: dict[tuple[str, str], Matches], models: dict[str, ColorModel] | None) -> dict:
+    """How well ``models`` (None: the colours as recorded) make corresponding colours agree, and
+    what that does to them, over every pair: mean CIEDE2000 over all correspondences and over
+    the dark ones (L* < ``DARK_L``), mean chroma of the saturated colours (C*ab >=
+    ``SATURATED_CHROMA`` as recorded, so every model is measured on the same pixels) and the
+    standard deviation of L*. Each side is mapped and converted once."""
+    pairs = [m for m in matches.values() if len(m)]
+    if not pairs:
+        return {'de2000': float('nan'), 'de2000_dark': float('nan'), 'chroma': float('nan'),
+                'lightness_std': float('nan')}
+
+    def mapped(camera, colors):
+        return np.clip(models[camera].apply(colors), 0, 1) if models else colors
+    lab_a = srgb_to_lab(np.vstack([mapped(m.a, m.colors_a) for m in pairs]))
+    lab_b = srgb_to_lab(np.vstack([mapped(m.b, m.colors_b) for m in pairs]))
+    recorded_a = np.vstack([m.colors_a for m in pairs])
+    recorded_b = np.vstack([m.colors_b for m in pairs])
+    de = color_science.delta_E(lab_a, lab_b, method='CIE 2000')
+    dark = srgb_to_lab(np.minimum(recorded_a, recorded_b))[:, 0] < DARK_L
+    lab = np.vstack([lab_a, lab_b])
+    saturated = chroma(srgb_to_lab(np.vstack([recorded_a, recorded_b]))) >= SATURATED_CHROMA
+    return {'de2000': float(de.mean()), 'de2000_dark': float(de[dark].mean()) if dark.any() else float('nan'),
+            'chroma': float(chroma(lab[saturated]).mean()) if saturated.any() else float('nan'),
+            'lightness_std': float(lab[:, 0].std())}
 
 
 def choose_chart_free_model(matches: dict[tuple[str, str], Matches], cameras: list[str], reference: str = 'mean',
@@ -447,15 +444,11 @@ def choose_chart_free_model(matches: dict[tuple[str, str], Matches], cameras: li
     already consistent). ``base``, ``anchor``: as ``chart_free_fit`` (the untouched colours are
     then the base models')."""
     fit, check = split_matches(matches, seed=seed)
-
-    def score(models):
-        de, dark = consistency(check, models)
-        chroma, spread = contrast(check, models)
-        return {'de2000': de, 'de2000_dark': dark, 'chroma': chroma, 'lightness_std': spread}
-    scores = {'identity': score(base)}
+    scores = {'identity': held_out_scores(check, base)}
     before = scores['identity']
     for model in candidates:
-        scores[model] = score(chart_free_fit(fit, cameras, model, reference, base=base, anchor=anchor, seed=seed))
+        scores[model] = held_out_scores(check, chart_free_fit(fit, cameras, model, reference, base=base, anchor=anchor,
+                                                               seed=seed))
 
     def flattens(s):
         # Corresponding colours also agree when lightness is pulled together (blacks lifted,

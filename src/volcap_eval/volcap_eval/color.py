@@ -56,6 +56,7 @@ from volcap_color.methods import (
     brown_lowe,
     chart_free_fit,
     choose_chart_free_model,
+    chroma,
     fit_finlayson,
     fit_reinhard,
     fit_vandermonde,
@@ -131,12 +132,11 @@ def chroma_kept(matches: dict[tuple[str, str], Matches], mapping: dict[str, Mapp
     greying colours out shows here, where pairwise scores cannot see it."""
     before, after = [], []
     for camera, colors, pixels in _scored_rows(matches, max_per_pair, seed):
-        lab = srgb_to_lab(colors)
-        keep = np.hypot(lab[:, 1], lab[:, 2]) >= SATURATED_CHROMA
+        recorded = chroma(srgb_to_lab(colors))
+        keep = recorded >= SATURATED_CHROMA
         if keep.any():
-            mapped = srgb_to_lab(_as_8bit(apply_mapping(mapping[camera], colors[keep], pixels[keep])))
-            before.append(np.hypot(lab[keep, 1], lab[keep, 2]))
-            after.append(np.hypot(mapped[:, 1], mapped[:, 2]))
+            before.append(recorded[keep])
+            after.append(chroma(srgb_to_lab(_as_8bit(apply_mapping(mapping[camera], colors[keep], pixels[keep])))))
     if not before:
         return {'chroma_before': None, 'chroma_after': None, 'saturated_pixels': 0}
     return {'chroma_before': float(np.concatenate(before).mean()), 'chroma_after': float(np.concatenate(after).mean()),
