@@ -166,5 +166,7 @@ def test_real_texture_chart_free_is_closest_to_the_true_colours(shared_data, tmp
     for key in ('truth_de2000', 'truth_de2000_exposure'):
         assert ours[key] < 0.5 * original[key] and ours[key] < min(rows[b][key] for b in baselines), key
     assert ours['chroma_after'] > 0.97 * ours['chroma_before']
-    assert report['chart_free_model']['model'] in ('gain', 'matrix_3x3', 'affine_3x4')
+    # the affine offset agrees better here only by pressing lightness together: left out
+    choice = report['chart_free_model']
+    assert choice['model'] == 'gain' and 'flattening lightness: affine_3x4' in choice['why'], choice['why']
     assert (tmp_path / 'figures' / 'colour_methods.png').exists()
