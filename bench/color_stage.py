@@ -23,7 +23,7 @@ from volcap_core import transport
 from volcap_core.calibration import Calibration
 from volcap_core.color import ColorModel
 from volcap_eval.color import ColorEvalConfig, method_mappings
-from volcap_eval.replay import capture_views
+from volcap_pipeline.replay import capture_views
 
 M = np.array([[1.1, 0.05, -0.02], [0.03, 0.92, 0.01], [-0.04, 0.02, 1.2]])
 MODELS = {

@@ -26,9 +26,9 @@ import open3d as o3d
 from volcap_core.camera import depth_to_millimetres
 from volcap_core.poses import invert, transform_points
 from volcap_eval.fusion import dropout_rate, observable, surface_samples
-from volcap_eval.replay import cleaned_frame_sets
 from volcap_filter.pipeline import DepthFilterConfig
 from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion, raycasting_scene
+from volcap_pipeline.replay import cleaned_frame_sets
 from volcap_studio.session import GroundTruth
 
 

@@ -41,7 +41,7 @@ def install(tmp_path_factory):
 
 def test_every_package_is_ament_python_format_3():
     assert PACKAGES == ['volcap_bringup', 'volcap_calib', 'volcap_color', 'volcap_core', 'volcap_driver',
-                        'volcap_eval', 'volcap_filter', 'volcap_fusion', 'volcap_studio']
+                        'volcap_eval', 'volcap_filter', 'volcap_fusion', 'volcap_pipeline', 'volcap_studio']
     for pkg in PACKAGES:
         xml = (REPO / 'src' / pkg / 'package.xml').read_text()
         assert '<package format="3">' in xml and '<build_type>ament_python</build_type>' in xml

@@ -5,7 +5,7 @@ from volcap_fusion.tsdf import FusionConfig
 
 
 def test_real_rgbd_frames_match_a_bare_open3d_integration(shared_data, tmp_path):
-    from volcap_eval.fusion import depth_kept, fuse_frames, surface_distance
+    from volcap_pipeline.rig import depth_kept, fuse_frames, surface_distance
     folder = shared_data / 'rgbd_box'
     ours, bare, views = fuse_frames(folder, folder / 'intrinsics.K.txt', FusionConfig(voxel_size=0.01, depth_max=6.5),
                                     stride=5)
@@ -16,7 +16,7 @@ def test_real_rgbd_frames_match_a_bare_open3d_integration(shared_data, tmp_path)
 
 
 def test_a_room_scanned_from_inside_is_kept_whole(tmp_path):
-    from volcap_eval.fusion import depth_kept, fuse_frames
+    from volcap_pipeline.rig import depth_kept, fuse_frames
     from volcap_studio.room import RoomConfig, write_room_frames
     folder = write_room_frames(tmp_path / 'room', RoomConfig(frames=12))
     ours, _, views = fuse_frames(folder, folder / 'intrinsics.K.txt', FusionConfig(voxel_size=0.02, depth_max=6.5))

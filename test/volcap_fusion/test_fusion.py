@@ -9,7 +9,6 @@ import pytest
 
 from volcap_core.camera import CameraModel, depth_to_millimetres
 from volcap_core.poses import convergence_point
-from volcap_eval.render import camera_up, look_at, orbit_views, render
 from volcap_fusion.glb import EncodeConfig, decode_glb, simplify
 from volcap_fusion.sequence import SUMMARY, SequenceWriter, T_world_frame, read_manifest, read_ply, read_sequence
 from volcap_fusion.tsdf import (
@@ -19,6 +18,7 @@ from volcap_fusion.tsdf import (
     TsdfFusion,
     effective_weight_threshold,
 )
+from volcap_pipeline.render import camera_up, look_at, orbit_views, render
 
 RADIUS = 0.3
 COLOR = (200, 120, 40)

@@ -1,7 +1,5 @@
-"""``volcap board``, ``volcap calibrate``, ``volcap eval calib`` and ``volcap eval chart``."""
+"""``volcap board`` and ``volcap calibrate`` (the calibration evaluations are in ``eval_cli``)."""
 from __future__ import annotations
-
-from volcap_core.files import write_json
 
 
 def cmd_board(args) -> int:
@@ -33,27 +31,7 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def cmd_eval_calib(args) -> int:
-    from volcap_eval.calib import evaluate_calibration, format_report
-    report = evaluate_calibration(args.calibration, args.bag, args.board, args.figures, not args.quiet)
-    print(format_report(report))
-    if args.json:
-        write_json(args.json, report)
-        print(f'wrote {args.json}')
-    return 0
-
-
-def cmd_eval_chart(args) -> int:
-    from volcap_eval.chart import evaluate_charts
-    report, lines = evaluate_charts(args.photos, args.method or None, args.figures)
-    print('\n'.join(lines))
-    if args.json:
-        write_json(args.json, report)
-        print(f'wrote {args.json}')
-    return 1 if report['failed'] else 0
-
-
-def add_parsers(sub, eval_sub) -> None:
+def add_parsers(sub) -> None:
     b = sub.add_parser('board', help='print the calibration board (PNG or PDF at true scale)')
     b.add_argument('--out', required=True, help='board.png or board.pdf')
     b.add_argument('--config', help='board YAML (default: the volcap board)')
@@ -77,18 +55,3 @@ def add_parsers(sub, eval_sub) -> None:
     c.add_argument('--quiet', action='store_true')
     c.set_defaults(func=cmd_calibrate)
 
-    e = eval_sub.add_parser('calib', help='a calibration against a synthetic bag\'s ground truth, with the paper baseline')
-    e.add_argument('calibration')
-    e.add_argument('bag')
-    e.add_argument('--json', help='write the report here')
-    e.add_argument('--figures', help='write PNGs into this folder')
-    e.add_argument('--board', help='board YAML (default: the volcap board)')
-    e.add_argument('--quiet', action='store_true')
-    e.set_defaults(func=cmd_eval_calib)
-
-    ch = eval_sub.add_parser('chart', help='find a ColorChecker Classic in photos and correct it to the reference')
-    ch.add_argument('photos', nargs='+')
-    ch.add_argument('--method', default='', help='force a colour model instead of the leave-one-out choice')
-    ch.add_argument('--json', help='write the report here')
-    ch.add_argument('--figures', help='write one PNG per photo into this folder')
-    ch.set_defaults(func=cmd_eval_chart)

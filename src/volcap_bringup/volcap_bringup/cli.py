@@ -23,14 +23,12 @@
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
-from pathlib import Path
 
-from volcap_core import transport
+from volcap_core.errors import VolcapError
 
-from . import calib_cli, color_cli, fusion_cli, rig_cli
+from . import calib_cli, color_cli, demo_cli, eval_cli, fusion_cli, rig_cli
 
 
 def cmd_synth(args) -> int:
@@ -85,159 +83,6 @@ def cmd_bag_recover(args) -> int:
     return 0
 
 
-def cmd_eval_depth(args) -> int:
-    from volcap_eval.depth import METHODS, evaluate_depth, format_report, write_report
-    methods = tuple(args.methods.split(',')) if args.methods else METHODS
-    report = evaluate_depth(args.bag, methods=methods, max_frames=args.frames,
-                            figures=Path(args.figures) if args.figures else None, progress=not args.quiet)
-    print(format_report(report))
-    if args.json:
-        write_report(report, Path(args.json))
-        print(f'wrote {args.json}')
-    return 0
-
-
-def cmd_eval_registration(args) -> int:
-    from volcap_eval.depth import write_report
-    from volcap_eval.registration import check_registration
-    report = check_registration(args.bag, Path(args.out), camera=args.camera)
-    print(f"{report['camera']}: depth edges lie {report['median_offset_px']:.2f} px (median) from colour edges "
-          f"over {report['edge_pixels']} edge pixels; best global shift {report['best_shift_px']} px "
-          f"(median there {report['median_offset_at_best_shift_px']:.2f} px); overlay {args.out}")
-    if args.json:
-        write_report(report, Path(args.json))
-    return 0
-
-
-# a third of the default training, so the demo stays a few minutes (docs/color.md gives full-length figures)
-DEMO_HARMONISE = {'points': 100_000, 'field_epochs': 40, 'field_lr': 5e-4, 'field_lr_final': 5e-5,
-                  'mapper_points': 30_000}
-
-
-def cmd_demo(args) -> int:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    from volcap_calib.run import CalibrateConfig
-    from volcap_calib.run import run as calibrate
-    from volcap_color import neural
-    from volcap_color.correspondence import cameras_in
-    from volcap_color.neural_config import HarmoniseConfig
-    from volcap_core.bag_io import BagReader
-    from volcap_core.calibration import Calibration
-    from volcap_core.files import write_json
-    from volcap_eval.color import ColorEvalConfig
-    from volcap_eval.color import format_report as format_color
-    from volcap_eval.color import run as evaluate_color
-    from volcap_eval.fusion import evaluate_fusion
-    from volcap_eval.replay import capture_views
-    from volcap_studio.session import GroundTruth, synthesize
-    from volcap_studio.studio import SynthConfig
-
-    from .monitor import StreamMonitor, format_rates
-    from .processes import start_node, stop
-    from .run_graph import RunConfig
-    from .run_graph import run as run_graph
-
-    out = Path(args.out)
-    bag = out / 'studio'
-    # 16 board poses: enough shared views to chain the four stands for the calibration step
-    cfg = SynthConfig(cameras=8, frames=args.frames, board_poses=16, background_frames=3, seed=args.seed)
-    if bag.exists() and _same_config(bag, cfg):
-        print(f'[1/7] reusing the studio bag {bag}')
-    else:
-        print(f'[1/7] rendering a synthetic 8-camera studio session into {bag}')
-        out.mkdir(parents=True, exist_ok=True)
-        synthesize(bag, cfg, overwrite=True)
-    with BagReader(bag) as reader:
-        duration = (reader.end_ns - reader.start_ns) / 1e9
-    cameras = GroundTruth(bag).rig.names
-    print(f'[2/7] replaying {duration:.1f} s through bag_player (its own process) into a subscriber')
-    transport.configure()
-    rclpy.init()
-    monitor = StreamMonitor(cameras)
-    executor = SingleThreadedExecutor()
-    executor.add_node(monitor)
-    player = start_node('volcap_driver', 'bag_player', {'bag': str(bag), 'exit_when_done': True,
-                                                        'wait_for_subscribers': 10.0,
-                                                        'topics': monitor.topics})
-    try:
-        deadline = time.monotonic() + duration + 60
-        while player.poll() is None and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-        end = time.monotonic() + 0.5
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
-    finally:
-        code = stop(player)
-        monitor.finish()
-        summary = monitor.summary()
-        executor.shutdown()
-        monitor.destroy_node()
-        rclpy.try_shutdown()
-    print(format_rates(summary))
-    write_json(out / 'demo_rates.json', summary)
-    print(f'bag: {bag}  ground truth: {bag / "ground_truth"}  rates: {out / "demo_rates.json"}')
-    if code != 0:
-        print(f'bag_player exited with {code}', file=sys.stderr)
-        return 1
-    if summary['frame_sets_complete'] == 0:
-        return 1
-    calibration = out / 'calibration.yaml'
-    print(f'[3/7] calibrating the rig from the board views: volcap calibrate -> {calibration}')
-    print('\n'.join(calibrate(CalibrateConfig(bag, calibration)).lines()))
-
-    models = out / 'neural'
-    print(f'[4/7] neural colour harmonisation (paper 001), a short run of volcap harmonise -> {models}')
-    t0 = time.perf_counter()
-    rig_calibration = Calibration.load(calibration)
-    sets = capture_views(bag, rig_calibration, 4)
-    report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**DEMO_HARMONISE),
-                        models, sources={'bag': str(bag), 'calibration': str(calibration)},
-                        views_seconds=time.perf_counter() - t0)
-    print('\n'.join(report.lines()))
-
-    print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
-          f'{out / "figures"}')
-    color = evaluate_color(bag, calibration, ColorEvalConfig(frames=4), neural=models, figures=out / "figures")
-    write_json(out / 'colour.json', color)
-    print(format_color(color))
-
-    run = out / 'run'
-    if run.exists():
-        shutil.rmtree(run)       # a run refuses to overwrite a sequence; the demo makes a new one
-    print(f'[6/7] the whole graph on the bag (bag_player, depth_filter and color_corrector x{len(cameras)}, '
-          f'tsdf_fusion, each its own process): volcap run -> {run}')
-    result = run_graph(RunConfig(bag, calibration, run))
-    print('\n'.join(result.lines()))
-    if not result.ok:
-        return 1
-
-    print(f'[7/7] the fused sequence against the ground truth: volcap eval fusion -> {out / "fusion.json"}')
-    fusion = evaluate_fusion(run, bag, max_frames=5)
-    write_json(out / 'fusion.json', fusion)
-    print(f'{fusion["frames"]} frames: accuracy {fusion["accuracy_mm"]:.2f} mm, completeness '
-          f'{100 * fusion["completeness"]:.1f} % of the observable surface, '
-          f'{100 * (fusion["completeness_feet"] or 0):.1f} % of its lowest 15 cm (feet)')
-    print(f'play it: volcap view {run / "frames"}')
-    print(f'meshes: {run / "frames"} (PLY + GLB per frame set)  renders: {run / "renders"} '
-          f'(raw vs cleaned: {run / "renders" / "raw_vs_clean.png"})  metrics: {run / "metrics.json"}')
-    return 0
-
-
-def _same_config(bag: Path, cfg) -> bool:
-    from dataclasses import asdict
-
-    from volcap_studio.session import GroundTruth
-    try:
-        stored = GroundTruth(bag).doc['config']
-    except (FileNotFoundError, KeyError):
-        return False
-    wanted = asdict(cfg)
-    return all(stored.get(k) == (list(v) if isinstance(v, tuple) else v) for k, v in wanted.items()
-               if k not in ('k4a_calibration', 'bunny_mesh'))
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='volcap', description='volumetric capture pipeline tools')
     sub = p.add_subparsers(dest='command', required=True)
@@ -283,42 +128,33 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser('eval', help='score a pipeline stage against ground truth or real data')
     esub = e.add_subparsers(dest='stage', required=True)
-    ed = esub.add_parser('depth', help='depth cleaning on a synthetic bag: raw, paper Eq. 5 and ours')
-    ed.add_argument('bag')
-    ed.add_argument('--json', help='write the report here')
-    ed.add_argument('--figures', help='write Fig. 13/15 style PNGs into this folder')
-    ed.add_argument('--frames', type=int, default=None, help='score only the first N capture frame sets')
-    ed.add_argument('--methods', default='', help='comma-separated subset of raw,paper_horizontal,paper_all,volcap')
-    ed.add_argument('--quiet', action='store_true')
-    ed.set_defaults(func=cmd_eval_depth)
-    er = esub.add_parser('registration', help='edge offset of registered depth against colour (real recordings)')
-    er.add_argument('bag')
-    er.add_argument('--camera', default=None, help='camera name (default: the first in the rig)')
-    er.add_argument('--out', default='registration_overlay.png', help='overlay PNG')
-    er.add_argument('--json', help='write the measurements here')
-    er.set_defaults(func=cmd_eval_registration)
 
+    eval_cli.add_parsers(esub)
     rig_cli.add_parsers(sub)
-    calib_cli.add_parsers(sub, esub)
-    color_cli.add_parsers(sub, esub)
-    fusion_cli.add_parsers(sub, esub)
+    calib_cli.add_parsers(sub)
+    color_cli.add_parsers(sub)
+    fusion_cli.add_parsers(sub)
+    demo_cli.add_parsers(sub)
 
-    d = sub.add_parser('demo', help='the pipeline end to end on generated data')
-    d.add_argument('--out', default='demo_out')
-    d.add_argument('--frames', type=int, default=30)
-    d.add_argument('--seed', type=int, default=0)
-    d.set_defaults(func=cmd_demo)
     return p
 
 
 def main(argv=None) -> int:
+    """Runs one command. A user's mistake (``VolcapError``: bad input, bad bag, weak calibration,
+    missing device; or a file the system refuses: missing, unreadable, disk full) is one line on
+    stderr and the error's exit code (2; 3 for a weak calibration). Anything else is a bug in
+    volcap: Python's traceback and exit 1."""
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (OSError, ValueError, RuntimeError, KeyError) as e:
+    except VolcapError as e:
         print(f'volcap {args.command}: error: {e}', file=sys.stderr)
-
+        return e.exit_code
+    except OSError as e:
+        print(f'volcap {args.command}: error: {e}', file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return 130
 
 
 if __name__ == '__main__':

@@ -1,10 +1,10 @@
-"""``volcap eval color``, ``volcap color-fit`` and ``volcap harmonise`` (``eval colour`` and ``colour-fit``
-are aliases)."""
+"""``volcap color-fit`` and ``volcap harmonise`` (``colour-fit`` is an alias; the colour evaluations are in
+``eval_cli``)."""
 from __future__ import annotations
 
 import time
 
-from volcap_core.files import write_json
+from volcap_core.errors import BadInput
 
 
 def _correspondence(args):
@@ -12,54 +12,19 @@ def _correspondence(args):
     return CorrespondenceConfig(min_fraction=0.0, **({'max_gradient': 0.0} if args.keep_edges else {}))
 
 
-def _print_report(report: dict, args) -> int:
-    from volcap_eval.color import format_report
-    print(format_report(report))
-    if 'table1_skipped' in report:
-        print(f'chart table left out: {report["table1_skipped"]}')
-    if args.json:
-        write_json(args.json, report)
-        print(f'wrote {args.json}')
-    for f in report.get('figures', []):
-        print(f'wrote {f}')
-    return 0
-
-
-def cmd_eval_color(args) -> int:
-    from volcap_eval.color import ColorEvalConfig, run
-    report = run(args.bag, args.calibration, ColorEvalConfig(frames=args.frames, correspondence=_correspondence(args),
-                                                             chart_free_model=args.chart_free_model),
-                 board_file=args.board, chart=not args.no_chart, neural=args.neural, figures=args.figures,
-                 progress=not args.quiet)
-    return _print_report(report, args)
-
-
-def cmd_eval_color_frames(args) -> int:
-    from volcap_eval.color import ColorEvalConfig, evaluate_frames_color
-    from volcap_eval.color_figures import write_color_figures
-    harmonise = (args.harmonise, harmonise_config(args)) if args.harmonise else None
-    report, extras = evaluate_frames_color(args.folder, args.intrinsics, args.views, args.seed,
-                                           ColorEvalConfig(chart_free_model=args.chart_free_model), not args.quiet,
-                                           harmonise)
-    if args.figures:
-        report['figures'] = [str(p) for p in write_color_figures(args.figures, report, extras['views'],
-                                                                 extras['mappings'], extras['models'])]
-    return _print_report(report, args)
-
-
 def cmd_color_fit(args) -> int:
     from volcap_calib.run import chart_samples, load_board
     from volcap_color import fit
     from volcap_color.correspondence import cameras_in
     from volcap_core.calibration import Calibration
-    from volcap_eval.replay import capture_views
+    from volcap_pipeline.replay import capture_views
     calibration = Calibration.load(args.calibration)
     sets = capture_views(args.bag, calibration, args.frames, not args.quiet)
     anchor = None
     if args.reference == 'chart':
         anchor, why = chart_samples(args.bag, load_board(args.board), cameras_in(sets, calibration), not args.quiet)
         if anchor is None:
-            raise ValueError(f'--reference chart needs the bag\'s board views: {why}')
+            raise BadInput(f'--reference chart needs the bag\'s board views: {why}')
     cfg = fit.ColorFitConfig(model=args.model, reference=args.reference, correspondence=_correspondence(args))
     report = fit.run(cfg, sets, calibration, anchor, source_bag=str(args.bag))
     report.calibration.save(args.out)
@@ -72,7 +37,7 @@ def harmonise_config(args):
     try:
         nx, ny = (int(v) for v in args.lut_grid.lower().split('x'))
     except ValueError:
-        raise ValueError(f'--lut-grid is NXxNY, for example 9x5, not {args.lut_grid!r}') from None
+        raise BadInput(f'--lut-grid is NXxNY, for example 9x5, not {args.lut_grid!r}') from None
     keys = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points', 'mapper_epochs',
             'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference', 'lut_colors', 'seed',
             'device', 'precision')
@@ -85,7 +50,7 @@ def cmd_harmonise(args) -> int:
     from volcap_color import neural
     from volcap_color.correspondence import cameras_in
     from volcap_core.calibration import Calibration
-    from volcap_eval.replay import capture_views
+    from volcap_pipeline.replay import capture_views
     cfg = harmonise_config(args)
     calibration = Calibration.load(args.calibration)
     t0 = time.perf_counter()
@@ -126,44 +91,20 @@ def harmonise_arguments(h, seed: bool = True) -> None:
     h.add_argument('--precision', choices=('auto', 'bf16', 'fp32'), default=d.precision)
 
 
-def add_parsers(sub, eval_sub) -> None:
-    def common(p):
-        p.add_argument('bag')
-        p.add_argument('--calibration', required=True, help='calibration.yaml of the rig')
-        p.add_argument('--frames', type=int, default=4, help='capture frame sets to use')
-        p.add_argument('--keep-edges', action='store_true', help='keep correspondences on texture edges')
-        p.add_argument('--board', help='board YAML (default: the volcap board)')
-        p.add_argument('--quiet', action='store_true')
+def common_arguments(p) -> None:
+    """The bag, calibration and correspondence arguments of every command that reads a rig's
+    capture frame sets (``color-fit``, ``harmonise``, ``eval color``)."""
+    p.add_argument('bag')
+    p.add_argument('--calibration', required=True, help='calibration.yaml of the rig')
+    p.add_argument('--frames', type=int, default=4, help='capture frame sets to use')
+    p.add_argument('--keep-edges', action='store_true', help='keep correspondences on texture edges')
+    p.add_argument('--board', help='board YAML (default: the volcap board)')
+    p.add_argument('--quiet', action='store_true')
 
-    e = eval_sub.add_parser('color', aliases=['colour'], help='every colour method on the same correspondences (papers 000 and 001)')
-    common(e)
-    e.add_argument('--json', help='write the report here')
-    e.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
-    e.add_argument('--no-chart', action='store_true', help='leave out the chart methods and table')
-    e.add_argument('--chart-free-model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'),
-                   help='model family of volcap_chart_free (auto: chosen per rig on held-out correspondences)')
-    e.add_argument('--neural', help='a volcap harmonise output folder: score its networks (neural) and live '
-                                    'form (neural_live) too')
-    e.set_defaults(func=cmd_eval_color)
 
-    r = eval_sub.add_parser('color-frames', aliases=['colour-frames'],
-                            help='the colour methods on real texture: views of a posed RGB-D folder, each through '
-                                 'its own colour response, scored against the undistorted images too')
-    r.add_argument('folder', help='frame-NNNNNN.{color.png,depth.png,pose.txt} (e.g. ../shared/data/rgbd_box)')
-    r.add_argument('--intrinsics', help='3x3 intrinsic matrix (default FOLDER/intrinsics.K.txt)')
-    r.add_argument('--views', type=int, default=8, help='frames used as the cameras of one frame set')
-    r.add_argument('--seed', type=int, default=0, help='seed of the colour responses (and of --harmonise)')
-    r.add_argument('--chart-free-model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'))
-    r.add_argument('--json', help='write the report here')
-    r.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
-    r.add_argument('--quiet', action='store_true')
-    r.add_argument('--harmonise', metavar='DIR', help='also train the neural method (volcap harmonise, settings '
-                                                      'below) on the views into DIR and score it')
-    harmonise_arguments(r, seed=False)
-    r.set_defaults(func=cmd_eval_color_frames)
-
+def add_parsers(sub) -> None:
     f = sub.add_parser('color-fit', aliases=['colour-fit'], help='per-camera colour models from correspondences between the cameras')
-    common(f)
+    common_arguments(f)
     f.add_argument('--out', required=True, help='calibration.yaml to write (the input with new colour models)')
     f.add_argument('--model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'),
                    help='auto: the simplest model that fits without hurting dark pixels (none for a consistent rig)')
@@ -174,7 +115,7 @@ def add_parsers(sub, eval_sub) -> None:
 
     h = sub.add_parser('harmonise', help='train paper 001\'s colour field E and per-camera networks D (torch), '
                                          'and export them for color_corrector')
-    common(h)
+    common_arguments(h)
     h.add_argument('--out', required=True, help='folder for the models (created)')
     h.add_argument('--train-sets', choices=('even', 'all'), default='even',
                    help='train on the 1st, 3rd, ... frame set (the colour evaluation scores the others) or on all')

@@ -1,8 +1,9 @@
-"""`volcap run`, `volcap live`, `volcap view`, `volcap eval fusion` and `volcap fuse-frames`."""
+"""`volcap run`, `volcap live`, `volcap view`, `volcap operator` and `volcap fuse-frames`."""
 from __future__ import annotations
 
 from pathlib import Path
 
+from volcap_core.errors import BadInput
 from volcap_core.files import write_json
 from volcap_fusion import VOXEL_SIZE
 
@@ -47,7 +48,7 @@ def cmd_live(args) -> int:
 def cmd_view(args) -> int:
     from .view import ViewConfig, run_view
     if not args.live and not args.folder:
-        raise ValueError('give a sequence folder (DIR/frames of `volcap run --out DIR`) or --live')
+        raise BadInput('give a sequence folder (DIR/frames of `volcap run --out DIR`) or --live')
 
     def ready(url: str) -> None:
         what = 'the newest mesh on /volcap/mesh/glb' if args.live else f'the sequence in {args.folder}'
@@ -69,24 +70,9 @@ def cmd_operator(args) -> int:
     return 0
 
 
-def cmd_eval_fusion(args) -> int:
-    from volcap_eval.fusion import evaluate_fusion
-    report = evaluate_fusion(args.dir, args.bag, progress=not args.quiet, max_frames=args.frames)
-    print(f'{report["frames"]} frames: accuracy {report["accuracy_mm"]:.2f} mm (mean distance to the subject), '
-          f'completeness {100 * report["completeness"]:.1f} % of the observable surface within '
-          f'{report["completeness_threshold_mm"]:.0f} mm ({100 * report["completeness_all"]:.1f} % of all of it)')
-    if report['completeness_feet'] is not None:
-        print(f'  lowest {100 * report["feet_m"]:.0f} cm of the subject (feet, floor contact): completeness '
-              f'{100 * report["completeness_feet"]:.1f} %')
-    if args.json:
-        write_json(args.json, report)
-        print(f'wrote {args.json}')
-    return 0
-
-
 def cmd_fuse_frames(args) -> int:
-    from volcap_eval.fusion import fuse_folder
     from volcap_fusion.tsdf import FusionConfig
+    from volcap_pipeline.rig import fuse_folder
     intrinsics = args.intrinsics or str(Path(args.folder) / 'intrinsics.K.txt')
     box = {'box_center': tuple(args.box_center)} if args.box_center else {}
     cfg = FusionConfig(voxel_size=args.voxel, weight_threshold=args.weight_threshold, depth_max=args.depth_max,
@@ -101,7 +87,7 @@ def cmd_fuse_frames(args) -> int:
     return 0
 
 
-def add_parsers(sub, esub) -> None:
+def add_parsers(sub) -> None:
     r = sub.add_parser('run', help='replay a bag through the whole graph and write the volumetric sequence')
     r.add_argument('bag')
     r.add_argument('--calibration', required=True)
@@ -141,14 +127,6 @@ def add_parsers(sub, esub) -> None:
     live.add_argument('--json', help='write every second\'s figures here at the end')
     live.add_argument('--quiet', action='store_true')
     live.set_defaults(func=cmd_live)
-
-    e = esub.add_parser('fusion', help='fused sequence against the synthetic ground truth')
-    e.add_argument('dir', help='a volcap run output folder')
-    e.add_argument('bag', help='the synthetic bag it was made from')
-    e.add_argument('--json', help='write the report here')
-    e.add_argument('--frames', type=int, default=None, help='score only the first N frames')
-    e.add_argument('--quiet', action='store_true')
-    e.set_defaults(func=cmd_eval_fusion)
 
     v = sub.add_parser('view', help='play a fused sequence (or the live mesh) in the browser: three.js on localhost')
     v.add_argument('folder', nargs='?', help='sequence folder (sequence.jsonl; DIR/frames of volcap run)')

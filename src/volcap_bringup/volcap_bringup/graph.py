@@ -4,6 +4,7 @@ same list on a full ROS install. No rclpy here, so a launch file can import it."
 from __future__ import annotations
 
 from volcap_core import topics
+from volcap_core.errors import BadInput
 
 NodeSpec = tuple[str, str, str, dict, dict]   # (package, executable, namespace, parameters, remaps)
 
@@ -29,7 +30,7 @@ _AZURE_REGISTERED = {'depth/image_raw': 'depth_to_rgb/image_raw', 'depth/camera_
 def camera_remaps(driver: str, registered: bool = False) -> dict[str, str]:
     """volcap topic -> driver topic, both relative to the camera namespace."""
     if driver not in DRIVERS:
-        raise ValueError(f'unknown camera driver {driver!r}; known: {", ".join(DRIVERS)}')
+        raise BadInput(f'unknown camera driver {driver!r}; known: {", ".join(DRIVERS)}')
     if driver != 'azure_kinect':
         return {}
     return {**_AZURE_COLOR, **(_AZURE_REGISTERED if registered else {})}

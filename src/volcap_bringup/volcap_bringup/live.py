@@ -19,17 +19,12 @@ from typing import Callable
 
 import numpy as np
 import psutil
-import rclpy
-from rclpy.node import Node
-from std_msgs.msg import String
-from visualization_msgs.msg import Marker
 
-from volcap_core import qos, topics, transport
+from volcap_core import topics
 from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
-from volcap_core.conversions import cdr_stamp_ns
+from volcap_core.errors import BadInput
 from volcap_core.frames import camera_topics, read_rig
-from volcap_core.ros import make_executor
 
 from .graph import (
     LIVE_DEPTH_SCALE,
@@ -41,20 +36,9 @@ from .graph import (
     rig_graph,
     stream_remaps,
 )
-from .processes import compose, start_node, stop
-from .run_graph import expected_subscribers, wait_until_subscribed
-
-
-class MeshProbe(Node):
-    """A renderer stand-in: receives every mesh and keeps its arrival time and capture stamp."""
-
-    def __init__(self, **node_options):
-        super().__init__('volcap_mesh_probe', **node_options)
-        self.meshes: list[tuple[float, int, int]] = []      # (arrival wall ns, capture stamp ns, bytes)
-        self.create_subscription(Marker, '/' + topics.MESH, self._on_mesh, qos.CAMERA, raw=True)
-
-    def _on_mesh(self, data: bytes) -> None:
-        self.meshes.append((time.time_ns(), cdr_stamp_ns(data), len(data)))
+from .probe import RendererProbe
+from .run_graph import expected_subscribers, graph_subscriptions
+from .session import GraphSession
 
 
 @dataclass
@@ -92,7 +76,7 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
     cameras = list(cfg.cameras or calibration.cameras)
     absent = [c for c in cameras if c not in calibration.cameras]
     if absent:
-        raise ValueError(f'cameras {absent} are not in the calibration {cfg.calibration}')
+        raise BadInput(f'cameras {absent} are not in the calibration {cfg.calibration}')
     filters = {c: {} for c in cameras}
     corrector: dict = {}
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': cfg.output_dir,
@@ -105,7 +89,7 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
             loop_offset = _capture_offset_s(reader)
         missing = [c for c in cameras if c not in layout]
         if missing:
-            raise ValueError(f'cameras {missing} are not in {cfg.bag}')
+            raise BadInput(f'cameras {missing} are not in {cfg.bag}')
         maps = {c: stream_remaps(c, layout[c]) for c in cameras}
         for c in cameras:
             filters[c].update(maps[c][1])
@@ -155,9 +139,6 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
     controller's summaries, the probe's meshes and each process's CPU seconds after the warm-up."""
     calibration = Calibration.load(cfg.calibration)
     nodes, cameras, layout = live_nodes(cfg, calibration)
-    transport.configure()
-    rclpy.init()
-    executor = make_executor()
     summaries: list[dict] = []
     clock = {'started': None}     # when the frames started (the graph takes a while to come up)
 
@@ -168,73 +149,45 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
         if on_summary is not None:
             on_summary(s)
 
-    publisher = Node('volcap_live')
-    calibration_pub = publisher.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
-    calibration_pub.publish(String(data=calibration.to_yaml()))
-    executor.add_node(publisher)
-    probe = MeshProbe() if cfg.probe else None
-    if probe is not None:
-        executor.add_node(probe)
     controller_spec = nodes[-1]
     source = nodes[0] if cfg.bag is not None else None
     graph = nodes[1:-1] if source else nodes[:-1]
-    procs: dict[str, object] = {}
-    hosted = []
-    codes = {}
-    cpu_start: dict[str, float] = {}
-    cpu_end: dict[str, float] = {}
-    try:
-        hosted = [compose(*controller_spec, on_summary=summarised)]
-        if cfg.composed:
-            hosted += [compose(*n) for n in graph]
-        else:
-            for pkg, exe, ns, params, remaps in graph:
-                procs[f'{exe}{"/" + ns if ns else ""}'] = start_node(pkg, exe, params, namespace=ns, remaps=remaps)
-        for node in hosted:
-            executor.add_node(node)
-        wait_until_subscribed(executor, publisher, cameras, layout, timeout=120.0)
-        if source is not None:
-            nice = cfg.source_nice
-            procs['bag_player'] = start_node(*source[:2], source[3], remaps=source[4],
-                                             preexec_fn=(lambda: os.nice(nice)) if nice else None)
-        ps = {name: psutil.Process(p.pid) for name, p in procs.items()}
-        ps['volcap_live'] = psutil.Process()
-        started = clock['started'] = time.monotonic()
-        end = None if cfg.seconds is None else started + cfg.seconds
-        warm = started + cfg.warmup_s
-        while end is None or time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
-            if not cpu_start and time.monotonic() >= warm:
-                cpu_start = _process_cpu_s(ps)
-                cpu_start_t = time.monotonic()
-                meshes_before = len(probe.meshes) if probe else 0
-            dead = [n for n, p in procs.items() if p.poll() is not None]
-            if dead:
-                raise RuntimeError(f'{dead[0]} exited with code {procs[dead[0]].returncode}')
-        if cpu_start:
-            cpu_end = _process_cpu_s(ps)
-            window_s = time.monotonic() - cpu_start_t
-    except KeyboardInterrupt:
-        pass
-    finally:
-        # The source first, so no stage reports the others' absence while they stop.
-        codes = {name: stop(procs[name]) for name in reversed(list(procs))}
-        for node in hosted:
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown()
-        for node in (publisher, probe):
-            if node is not None:
-                node.destroy_node()
-        rclpy.try_shutdown()
+    window: dict = {}
+    probe = None
+    with GraphSession('volcap_live', calibration, executor='events') as session:
+        try:
+            probe = session.host(RendererProbe(reliable=False)) if cfg.probe else None
+            session.compose(controller_spec, on_summary=summarised)
+            session.start_graph(graph, cfg.composed)
+            session.wait_until_subscribed(graph_subscriptions(cameras, layout), timeout=120.0)
+            if source is not None:
+                nice = cfg.source_nice
+                session.start(source, preexec_fn=(lambda: os.nice(nice)) if nice else None)
+            ps = {name: psutil.Process(p.pid) for name, p in session.processes.items()}
+            ps['volcap_live'] = psutil.Process()
+            started = clock['started'] = time.monotonic()
+            warm = started + cfg.warmup_s
+
+            def warmed_up() -> bool:
+                if not window and time.monotonic() >= warm:
+                    window.update(cpu_start=_process_cpu_s(ps), t=time.monotonic(),
+                                  meshes_before=len(probe.meshes) if probe else 0)
+                return False
+            session.spin_until(warmed_up, cfg.seconds, fail_on_exit=True)
+            if window:
+                window['cpu_end'] = _process_cpu_s(ps)
+                window['s'] = time.monotonic() - window['t']
+        except KeyboardInterrupt:
+            pass
     result = {'cameras': cameras, 'voxel_size': cfg.voxel_size, 'mode': 'composed' if cfg.composed else 'processes',
-              'depth_scale': cfg.depth_scale, 'summaries': summaries, 'node_exit_codes': codes}
-    if cpu_end:
-        result['window_s'] = window_s
-        result['cpu_s'] = {n: cpu_end[n] - cpu_start[n] for n in cpu_end}
+              'depth_scale': cfg.depth_scale, 'summaries': summaries,
+              'node_exit_codes': {n: c for n, c in session.exit_codes.items() if n != 'live_controller'}}
+    if 'cpu_end' in window:
+        result['window_s'] = window['s']
+        result['cpu_s'] = {n: window['cpu_end'][n] - window['cpu_start'][n] for n in window['cpu_end']}
     if probe is not None:
         result['meshes'] = probe.meshes
-        result['meshes_in_window'] = len(probe.meshes) - meshes_before if cpu_end else None
+        result['meshes_in_window'] = len(probe.meshes) - window['meshes_before'] if 'cpu_end' in window else None
     return result
 
 

@@ -146,28 +146,18 @@ class OperatorBridge(Node):
 
 def run_operator(cfg: OperatorConfig, ready=None) -> None:
     """Serve the viewer and bridge the graph into it until interrupted."""
-    import rclpy
     import rerun as rr
     from rclpy.executors import ExternalShutdownException
 
-    from volcap_core import transport
-    from volcap_core.ros import make_executor
+    from .session import GraphSession
     rr.init('volcap')
     uri = rr.serve_grpc(grpc_port=cfg.grpc_port)
     rr.serve_web_viewer(web_port=cfg.web_port, open_browser=False, connect_to=uri)
-    transport.configure()
-    rclpy.init()
-    node = OperatorBridge(cfg)
-    executor = make_executor()
-    executor.add_node(node)
-    if ready:
-        ready(f'http://127.0.0.1:{cfg.web_port}/?url={urllib.parse.quote(uri, safe="")}')
     try:
-        while rclpy.ok():
-            executor.spin_once(timeout_sec=0.2)
+        with GraphSession('volcap_operator', executor='events') as session:
+            session.host(OperatorBridge(cfg))
+            if ready:
+                ready(f'http://127.0.0.1:{cfg.web_port}/?url={urllib.parse.quote(uri, safe="")}')
+            session.spin_until(lambda: not session.ok())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()

@@ -12,13 +12,13 @@ import math
 import time
 from pathlib import Path
 
-from volcap_core import transport
+from volcap_core.errors import BadInput
 
 
 def _named(spec: str, option: str) -> tuple[str, str]:
     name, sep, value = spec.partition('=')
     if not sep or not name or not value:
-        raise ValueError(f'{option} takes CAMERA=VALUE, got {spec!r}')
+        raise BadInput(f'{option} takes CAMERA=VALUE, got {spec!r}')
     return name, value
 
 
@@ -36,13 +36,13 @@ def cmd_rig(args) -> int:
         name, files = _named(spec, '--orbbec')
         paths = files.split(',')
         if len(paths) != 3:
-            raise ValueError('--orbbec takes CAMERA=DEPTH_TO_COLOR.yaml,COLOR_INFO.yaml,DEPTH_INFO.yaml')
+            raise BadInput('--orbbec takes CAMERA=DEPTH_TO_COLOR.yaml,COLOR_INFO.yaml,DEPTH_INFO.yaml')
         cameras.append(rig_camera_from_orbbec(name, *(Path(p) for p in paths)))
     if args.bag:
         with BagReader(args.bag) as reader:
             cameras += read_rig(reader).cameras
     if not cameras:
-        raise ValueError('give at least one --k4a, --orbbec or --bag')
+        raise BadInput('give at least one --k4a, --orbbec or --bag')
     rig = Rig(cameras, name=args.name)
     atomic_write(args.out, lambda f: f.write(rig.to_yaml()), binary=False)
     for cam in rig.cameras:
@@ -55,41 +55,33 @@ def cmd_rig(args) -> int:
 
 
 def cmd_monitor(args) -> int:
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rich.console import Console
     from rich.live import Live
 
     from volcap_core.files import write_json
 
     from .monitor import RigMonitor, health_table
+    from .session import GraphSession
 
     cameras = [f'cam{i}' for i in range(int(args.cameras[0]))] if len(args.cameras) == 1 and \
         args.cameras[0].isdigit() else list(args.cameras)
-    transport.configure()
-    rclpy.init()
-    node = RigMonitor(cameras, args.driver, args.registered, 'compressed' if args.color_format == 'jpeg' else 'raw',
-                      args.window)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    end = time.monotonic() + args.seconds if args.seconds > 0 else math.inf
     console = Console()
-    try:
-        with Live(health_table(node.report), console=console, refresh_per_second=2,
-                  auto_refresh=False, transient=False) as live:
-            next_draw = 0.0
-            while time.monotonic() < end:
-                executor.spin_once(timeout_sec=0.1)
-                if time.monotonic() >= next_draw:
-                    live.update(health_table(node.health.report(time.time_ns())), refresh=True)
-                    next_draw = time.monotonic() + 1.0
-    except KeyboardInterrupt:
-        pass
-    finally:
+    with GraphSession('volcap_monitor_cli') as session:
+        node = session.host(RigMonitor(cameras, args.driver, args.registered,
+                                       'compressed' if args.color_format == 'jpeg' else 'raw', args.window))
+        end = time.monotonic() + args.seconds if args.seconds > 0 else math.inf
+        try:
+            with Live(health_table(node.report), console=console, refresh_per_second=2,
+                      auto_refresh=False, transient=False) as live:
+                next_draw = 0.0
+                while time.monotonic() < end:
+                    session.spin_once(0.1)
+                    if time.monotonic() >= next_draw:
+                        live.update(health_table(node.health.report(time.time_ns())), refresh=True)
+                        next_draw = time.monotonic() + 1.0
+        except KeyboardInterrupt:
+            pass
         report = node.health.report(time.time_ns())
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
     for warning in report.warnings:
         console.print(f'[yellow]warning:[/yellow] {warning}')
     if args.json:

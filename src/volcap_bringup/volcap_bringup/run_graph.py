@@ -14,67 +14,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
-from sensor_msgs.msg import CompressedImage, Image, PointCloud2
-from std_msgs.msg import String
 from tqdm import tqdm
-from visualization_msgs.msg import Marker
 
-from volcap_core import qos, topics, transport
+from volcap_core import topics
 from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
-from volcap_core.conversions import cdr_stamp_ns, stamp_to_ns
+from volcap_core.errors import BadInput
 from volcap_core.files import write_json
 from volcap_core.frames import camera_topics, read_rig
 from volcap_core.rig import Rig
-from volcap_core.sync import DEFAULT_PERIOD_NS, tolerance_for_period
 from volcap_fusion import VOXEL_SIZE
 
 from .graph import NodeSpec, rig_graph, stream_remaps
-from .processes import compose, start_node, stop
-
-
-class RendererProbe(Node):
-    """Receives the fused output as a renderer would and times it."""
-
-    def __init__(self, color_topic: str, calibration: Calibration, **node_options):
-        """``color_topic``: the first camera's colour as the bag holds it (Image or JPEG)."""
-        super().__init__('volcap_renderer_probe', **node_options)
-        self.entered: dict[int, float] = {}      # stamp -> wall time its first colour image arrived here
-        self.meshes: dict[int, tuple[float, int]] = {}    # stamp -> (arrival, marker bytes)
-        self.clouds: dict[int, tuple[float, int]] = {}    # stamp -> (arrival, points)
-        self.calibration_pub = self.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
-        self.calibration_pub.publish(String(data=calibration.to_yaml()))
-        self.create_subscription(CompressedImage if color_topic.endswith('/compressed') else Image, color_topic,
-                                 lambda data: self.entered.setdefault(cdr_stamp_ns(data), time.time()),
-                                 qos.SENSOR, raw=True)
-        self.create_subscription(Marker, '/' + topics.MESH, self._on_mesh, qos.EVERY_FRAME, raw=True)
-        self.create_subscription(PointCloud2, '/' + topics.FUSED_POINTS, self._on_cloud, qos.EVERY_FRAME)
-
-    def _on_mesh(self, data: bytes) -> None:
-        self.meshes[cdr_stamp_ns(data)] = (time.time(), len(data))
-
-    def _on_cloud(self, msg: PointCloud2) -> None:
-        self.clouds[stamp_to_ns(msg.header.stamp)] = (time.time(), msg.width * msg.height)
-
-    def summary(self) -> dict:
-        # A frame set is stamped by whichever camera opened it: match within the sync tolerance.
-        entered = np.array(sorted(self.entered), dtype=np.int64)
-        latency = []
-        for stamp, (arrival, _) in self.meshes.items():
-            k = int(np.argmin(np.abs(entered - stamp))) if entered.size else -1
-            if k >= 0 and abs(int(entered[k]) - stamp) <= tolerance_for_period(DEFAULT_PERIOD_NS):
-                latency.append((arrival - self.entered[int(entered[k])]) * 1000)
-        arrivals = sorted(t for t, _ in self.meshes.values())
-        rate = (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]) if len(arrivals) > 2 else None
-        return {'meshes_received': len(self.meshes), 'clouds_received': len(self.clouds),
-                'mesh_rate_hz': rate,
-                'latency_ms_median': float(np.median(latency)) if latency else None,
-                'latency_ms_p95': float(np.percentile(latency, 95)) if latency else None,
-                'mesh_message_mb_median': float(np.median([b for _, b in self.meshes.values()]) / 1e6)
-                if self.meshes else None}
+from .probe import RendererProbe
+from .session import GraphSession, spec_name
 
 
 @dataclass
@@ -146,75 +99,53 @@ def run_graph(cfg: RunConfig) -> dict:
         bag_damage = reader.damage       # what the scan met; the player reports the same as it plays
     cameras = [c for c in rig.names if c in calibration.cameras]
     if not cameras:
-        raise ValueError(f'no camera of {bag} is in the calibration {calibration_path}')
+        raise BadInput(f'no camera of {bag} is in the calibration {calibration_path}')
     frames_dir = out / 'frames'
     if frames_dir.exists() and any(frames_dir.iterdir()):
         raise FileExistsError(f'{frames_dir} already holds a sequence; choose another --out')
     played = [t for c in cameras for t in layout[c].values()] + [topics.RIG, topics.PHASE, topics.TF_STATIC]
     nodes = graph_parameters(bag, rig, cameras, frames_dir, cfg, played, layout)
-    transport.configure()
-    rclpy.init()
-    executor = SingleThreadedExecutor()
-    probe = RendererProbe(layout[cameras[0]]['color'], calibration)
-    executor.add_node(probe)
-    procs, hosted = [], []
     t_start = time.monotonic()
-    try:
+    with GraphSession('volcap_run', calibration) as session:
+        probe = session.host(RendererProbe(layout[cameras[0]]['color'], clouds=True))
         # The player starts last, once every node subscribes: frames sent earlier would be lost.
-        graph, (player_node,) = nodes[1:], nodes[:1]
+        player, graph = nodes[0], nodes[1:]
+        session.start_graph(graph, cfg.composed)
+        session.wait_until_subscribed(graph_subscriptions(cameras, layout), timeout=120.0)
         if cfg.composed:
-            hosted = [compose(*n) for n in graph]
-            for node in hosted:
-                executor.add_node(node)
-        else:
-            procs = [start_node(pkg, exe, params, namespace=ns, remaps=remaps) for pkg, exe, ns, params, remaps in graph]
-        wait_until_subscribed(executor, probe, cameras, layout, timeout=120.0)
-        if cfg.composed:
-            player = compose(*player_node)
-            executor.add_node(player)
-            hosted.insert(0, player)
+            player_node = session.compose(player)
 
             def playing():
-                return player.playing
+                return player_node.playing
         else:
-            procs.insert(0, start_node(*player_node[:2], player_node[3], namespace=player_node[2],
-                                       remaps=player_node[4]))
+            player_proc = session.start(player)
 
             def playing():
-                return procs[0].poll() is None
-        deadline = time.monotonic() + 120 + duration / cfg.rate * 3
-        last_count, last_change = 0, time.monotonic()
+                return player_proc.poll() is None
         bar = tqdm(total=capture_sets, desc='fused frame sets', unit='set', disable=not progress)
-        ended = None
-        while time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-            now = time.monotonic()
-            if len(probe.meshes) != last_count:
-                bar.update(len(probe.meshes) - last_count)
-                last_count, last_change = len(probe.meshes), now
-            if ended is None and not playing():
-                ended = now
-            if ended is not None and (last_count >= capture_sets or now - max(last_change, ended) > cfg.settle_s):
-                break
+        state = {'count': 0, 'change': time.monotonic(), 'ended': None}
+
+        def finished() -> bool:
+            # every capture set fused, or playback over and no new mesh for settle_s
+            now, count = time.monotonic(), probe.mesh_count
+            if count != state['count']:
+                bar.update(count - state['count'])
+                state['count'], state['change'] = count, now
+            if state['ended'] is None and not playing():
+                state['ended'] = now
+            return state['ended'] is not None and (count >= capture_sets or
+                                                   now - max(state['change'], state['ended']) > cfg.settle_s)
+        session.spin_until(finished, timeout=120 + duration / cfg.rate * 3)
         bar.close()
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:      # the last clouds still in flight
-            executor.spin_once(timeout_sec=0.05)
-    finally:
-        codes = [stop(p) for p in procs] or [getattr(node, 'exit_code', 0) for node in hosted]
-        failures = [node.writer_failure for node in hosted if getattr(node, 'writer_failure', '')]
-        for node in hosted:
-            executor.remove_node(node)
-            node.destroy_node()
+        session.spin_for(1.0)      # the last clouds still in flight
+        failures = [node.writer_failure for node in session.hosted if getattr(node, 'writer_failure', '')]
         summary = probe.summary()
-        executor.shutdown()
-        probe.destroy_node()
-        rclpy.try_shutdown()
+    codes = session.exit_codes
     return {'mode': 'composed' if cfg.composed else 'processes', 'cameras': cameras,
             'capture_frame_sets_in_bag': capture_sets, 'bag_damage': bag_damage,
             'recording_failure': '; '.join(failures), 'playback_rate': cfg.rate, 'voxel_size': cfg.voxel_size,
             'wall_s': time.monotonic() - t_start, 'probe': summary,
-            'node_exit_codes': {f'{exe}{"/" + ns if ns else ""}': c for (_, exe, ns, _, _), c in zip(nodes, codes)}}
+            'node_exit_codes': {spec_name(n): codes.get(spec_name(n), codes.get(n[1])) for n in nodes}}
 
 
 def _capture_sets(reader: BagReader, color_topic: str) -> int:
@@ -231,29 +162,17 @@ def _capture_sets(reader: BagReader, color_topic: str) -> int:
     return sum(1 for k in at if k >= 0 and phases[k] == topics.CAPTURE)
 
 
-def wait_until_subscribed(executor, probe: Node, cameras: list[str], layout: dict, timeout: float) -> None:
-    """Until every camera's raw colour has its filter and corrector, its raw depth a filter, and
-    its cleaned depth and corrected colour the fusion: by node, as the graph names them (an
-    endpoint not yet discovered, or left by a process that just ended, has no known node)."""
+def graph_subscriptions(cameras: list[str], layout: dict) -> dict[str, set[tuple[str, str]]]:
+    """What a rig graph is up with: every camera's raw colour subscribed by its filter and
+    corrector, its raw depth by a filter, and its cleaned depth and corrected colour by the
+    fusion, as (namespace, node) per fully qualified topic."""
     def wanted(cam):
         ns = '/' + cam
         return {layout[cam]['color']: {(ns, 'depth_filter'), (ns, 'color_corrector')},
                 layout[cam]['depth']: {(ns, 'depth_filter')},
                 topics.camera_topic(cam, topics.DEPTH_CLEAN): {('/', 'tsdf_fusion')},
                 topics.camera_topic(cam, topics.COLOR_CORRECTED): {('/', 'tsdf_fusion')}}
-    needed = {'/' + t: nodes for cam in cameras for t, nodes in wanted(cam).items()}
-
-    def missing():
-        return {t: nodes - {(i.node_namespace, i.node_name) for i in probe.get_subscriptions_info_by_topic(t)}
-                for t, nodes in needed.items()}
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if not any(missing().values()):
-            return
-        executor.spin_once(timeout_sec=0.1)
-    late = {t: sorted(n) for t, n in missing().items() if n}
-    raise RuntimeError(f'the graph did not come up within {timeout:.0f} s: no subscription yet from '
-                       f'{list(late.items())[:3]}')
+    return {'/' + t: nodes for cam in cameras for t, nodes in wanted(cam).items()}
 
 
 @dataclass
@@ -316,10 +235,10 @@ def run(cfg: RunConfig) -> RunReport:
 
 def _figures(cfg: RunConfig, out: Path, frames: list[dict], poses: dict, on_floor: bool, metrics: dict) -> None:
     """Renders of the first, middle and last frames and the raw-vs-clean figure."""
-    from volcap_eval.fusion import raw_fusion
-    from volcap_eval.render import render_rows
     from volcap_fusion.sequence import read_ply
     from volcap_fusion.tsdf import FusionConfig
+    from volcap_pipeline.render import render_rows
+    from volcap_pipeline.rig import raw_fusion
     if frames:
         picks = sorted({0, len(frames) // 2, len(frames) - 1})
         metrics['renders'] = [str(render_rows([(f'frame {k}', read_ply(out / 'frames' / frames[k]['ply']))],

@@ -165,29 +165,24 @@ def run_view(cfg: ViewConfig, ready=None) -> None:
 
 
 def _serve_live(cfg: ViewConfig, ws_port: int, stop: threading.Event, url: str, ready) -> None:
-    import rclpy
     from rclpy.executors import ExternalShutdownException
-    from rclpy.node import Node
     from visualization_msgs.msg import Marker
 
-    from volcap_core import qos, topics, transport
+    from volcap_core import qos, topics
+
+    from .session import GraphSession
 
     newest = NewestFrame()
     server = serve_live_frames(newest, cfg.host, ws_port, stop)
-    transport.configure()
-    rclpy.init()
-    node = Node('volcap_view')
-    node.create_subscription(Marker, '/' + topics.MESH_GLB, lambda m: newest.put(bytes(m.mesh_file.data)),
-                             qos.CAMERA)
-    if ready:
-        ready(url)
     try:
-        while rclpy.ok() and not stop.is_set():
-            rclpy.spin_once(node, timeout_sec=0.2)
+        with GraphSession('volcap_view', executor='events') as session:
+            session.node.create_subscription(Marker, '/' + topics.MESH_GLB,
+                                             lambda m: newest.put(bytes(m.mesh_file.data)), qos.CAMERA)
+            if ready:
+                ready(url)
+            session.spin_until(lambda: stop.is_set() or not session.ok())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         stop.set()
         server.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()

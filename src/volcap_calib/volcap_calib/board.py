@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 import yaml
 
+from volcap_core.errors import BadInput
+
 DEFAULT_BOARD = Path(__file__).with_name('config') / 'board.yaml'
 
 
@@ -37,9 +39,9 @@ class BoardConfig:
 
     def __post_init__(self):
         if self.marker_size >= self.square_size:
-            raise ValueError('marker_size must be smaller than square_size')
+            raise BadInput('marker_size must be smaller than square_size')
         if not hasattr(cv2.aruco, self.dictionary):
-            raise ValueError(f'unknown ArUco dictionary {self.dictionary!r}')
+            raise BadInput(f'unknown ArUco dictionary {self.dictionary!r}')
 
     @classmethod
     def from_yaml(cls, path: str | Path = DEFAULT_BOARD) -> 'BoardConfig':
@@ -146,5 +148,5 @@ def write_board(path: str | Path, board: BoardConfig, dpi: int = 300) -> Path:
         fig.savefig(buf, format='pdf', dpi=dpi)
         plt.close(fig)
     else:
-        raise ValueError(f'board output must be .png or .pdf, got {path.name}')
+        raise BadInput(f'board output must be .png or .pdf, got {path.name}')
     return atomic_write(path, lambda f: f.write(buf.getvalue()))

@@ -16,6 +16,7 @@ import numpy as np
 
 from volcap_core.calibration import Calibration, CameraCalibration, StudioFrame
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput
 from volcap_core.poses import transform_points
 from volcap_core.rig import Rig
 
@@ -109,7 +110,7 @@ def patch_colors(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray
 class Calibrator:
     def __init__(self, rig: Rig, board: BoardConfig, cfg: CalibrationConfig = CalibrationConfig()):
         if cfg.reference is not None and cfg.reference not in rig.names:
-            raise ValueError(f'reference camera {cfg.reference!r} is not in the rig ({", ".join(rig.names)})')
+            raise BadInput(f'reference camera {cfg.reference!r} is not in the rig ({", ".join(rig.names)})')
         self.rig, self.board, self.cfg = rig, board, cfg
         self.detector = BoardDetector(board, cfg.solver.min_corners)
         self.observations: list[Observation] = []
@@ -141,10 +142,10 @@ class Calibrator:
     def _add_camera(self, view: int, name: str, frame: CameraFrame) -> str:
         model = frame.color_model
         if frame.color.shape[:2] != (model.height, model.width):
-            raise ValueError(f'colour image is {frame.color.shape[1]}x{frame.color.shape[0]}, camera_info says '
+            raise BadInput(f'colour image is {frame.color.shape[1]}x{frame.color.shape[0]}, camera_info says '
                              f'{model.width}x{model.height}')
         if self.models.get(name, model) != model:
-            raise ValueError('colour intrinsics changed during the calibration session')
+            raise BadInput('colour intrinsics changed during the calibration session')
         detection = self.detector.detect(frame.color, model)
         T, rms = target_pose(detection, model)
         obs = Observation(name, view, detection, T, rms)
@@ -153,7 +154,7 @@ class Calibrator:
                                                    self.rig.camera(name).T_color_depth, T, self._grid_region)
             reason = check_against_depth(obs, model, self.cfg.solver)
             if reason:
-                raise ValueError(reason)
+                raise BadInput(reason)
         self.models[name] = model
         self.observations.append(obs)
         colors, centres = patch_colors(frame.color, model, T, self.board, self.cfg.patch_inner, self.cfg.min_patch_px,

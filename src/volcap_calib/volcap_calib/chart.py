@@ -20,12 +20,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from volcap_core.errors import BadInput
+
 from .color import fit_model, srgb_to_linear
 
 ROWS, COLUMNS = 4, 6
 
 
-class ChartNotFound(RuntimeError):
+class ChartNotFound(BadInput):
     pass
 
 
@@ -168,7 +170,7 @@ def find_color_checker(image: np.ndarray, reference: np.ndarray, min_patches: in
     orientation's linear-RGB RMS residual must stay under ``max_residual`` (a real chart under
     warm light: 0.025)."""
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f'expected an (H, W, 3) uint8 RGB image, got {image.dtype} {image.shape}')
+        raise BadInput(f'expected an (H, W, 3) uint8 RGB image, got {image.dtype} {image.shape}')
     found = patch_candidates(image)
     if len(found) < min_patches:
         raise ChartNotFound(f'only {len(found)} square patches in the image (need {min_patches})')

@@ -21,6 +21,7 @@ from volcap_core.color import (
     srgb_to_lab,
     srgb_to_linear,
 )
+from volcap_core.errors import BadInput
 
 
 def _linear_fit(method: str, measured: np.ndarray, reference: np.ndarray) -> ColorModel:
@@ -31,7 +32,7 @@ def _linear_fit(method: str, measured: np.ndarray, reference: np.ndarray) -> Col
     linear, target = srgb_to_linear(measured), srgb_to_linear(reference)
     X = model_features(method, linear)
     if len(X) < X.shape[1]:
-        raise ValueError(f'{method} needs at least {X.shape[1]} patches, got {len(X)}')
+        raise BadInput(f'{method} needs at least {X.shape[1]} patches, got {len(X)}')
     if method == 'gamma_3x3':
         # Variable projection: the matrix is linear given the exponents, so only 3 are searched.
         def residual(g):
@@ -73,9 +74,9 @@ def fit_model(method: str, measured: np.ndarray, reference: np.ndarray, perceptu
     CIELAB, from ``start`` when given (a fit on nearly the same data converges in a few steps)."""
     measured, reference = np.asarray(measured, np.float64), np.asarray(reference, np.float64)
     if measured.shape != reference.shape or measured.ndim != 2 or measured.shape[1] != 3:
-        raise ValueError(f'expected matching (N, 3) colours, got {measured.shape} and {reference.shape}')
+        raise BadInput(f'expected matching (N, 3) colours, got {measured.shape} and {reference.shape}')
     if not np.isfinite(measured).all():
-        raise ValueError('measured patch colours contain NaN or inf')
+        raise BadInput('measured patch colours contain NaN or inf')
     if method == 'paper_diagonal' or not perceptual:
         return _linear_fit(method, measured, reference)
     return _refine_in_lab(start or _linear_fit(method, measured, reference), measured, reference)

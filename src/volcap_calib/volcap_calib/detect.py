@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput
 
 from .board import BoardConfig
 
@@ -27,7 +28,7 @@ class Detection:
         return len(self.ids)
 
 
-class DetectionError(ValueError):
+class DetectionError(BadInput):
     """The target was not found, or too little of it to use."""
 
 
@@ -36,7 +37,7 @@ def _gray(image: np.ndarray) -> np.ndarray:
         return image
     if image.ndim == 3 and image.shape[2] == 3:
         return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    raise ValueError(f'expected a grey or RGB image, got shape {image.shape}')
+    raise BadInput(f'expected a grey or RGB image, got shape {image.shape}')
 
 
 class BoardDetector:
@@ -44,7 +45,7 @@ class BoardDetector:
 
     def __init__(self, board: BoardConfig, min_corners: int = 6):
         if min_corners < 4:
-            raise ValueError('min_corners must be >= 4 (a pose needs four non-collinear corners)')
+            raise BadInput('min_corners must be >= 4 (a pose needs four non-collinear corners)')
         self.board, self.min_corners = board, min_corners
         self._charuco = board.charuco_board()
         self._corners3d = board.charuco_corners()

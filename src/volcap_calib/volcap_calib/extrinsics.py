@@ -21,12 +21,13 @@ from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput, VolcapError
 from volcap_core.poses import from_rotvec_t, invert, make_transform, rotation_angle_deg, to_rotvec_t, transform_points
 
 from .detect import Detection
 
 
-class CalibrationError(RuntimeError):
+class CalibrationError(VolcapError, RuntimeError):
     """Calibration cannot be trusted; ``cameras`` names each camera at fault and why."""
 
     def __init__(self, message: str, cameras: dict[str, str] | None = None):
@@ -101,17 +102,17 @@ def target_pose(detection: Detection, camera: CameraModel) -> tuple[np.ndarray, 
     Raises ValueError for a degenerate view: too few corners or corners on one line."""
     obj, px = detection.object_points, detection.pixels
     if len(obj) < 4:
-        raise ValueError(f'{len(obj)} corners, a pose needs 4')
+        raise BadInput(f'{len(obj)} corners, a pose needs 4')
     spread = np.linalg.svd(obj[:, :2] - obj[:, :2].mean(0), compute_uv=False)
     if spread[1] < 1e-3 * max(spread[0], 1e-9) or spread[1] < 1e-3:
-        raise ValueError('corners are collinear (degenerate pose)')
+        raise BadInput('corners are collinear (degenerate pose)')
     ok, rvec, tvec = cv2.solvePnP(obj, px, camera.K, camera.D, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
-        raise ValueError('PnP failed')
+        raise BadInput('PnP failed')
     rvec, tvec = cv2.solvePnPRefineLM(obj, px, camera.K, camera.D, rvec, tvec)
     T = make_transform(cv2.Rodrigues(rvec)[0], tvec)
     if T[2, 3] <= 0:
-        raise ValueError('target behind the camera (degenerate pose)')
+        raise BadInput('target behind the camera (degenerate pose)')
     return T, float(np.sqrt(np.mean(np.sum(corner_residuals(detection, T, camera) ** 2, axis=1))))
 
 
@@ -132,7 +133,7 @@ def _rays(camera: CameraModel) -> np.ndarray:
 def depth_points(depth_m: np.ndarray, depth_camera: CameraModel, T_color_depth: np.ndarray) -> np.ndarray:
     """(N, 3) points of every valid depth pixel, in the colour camera's frame."""
     if depth_m.shape != (depth_camera.height, depth_camera.width):
-        raise ValueError(f'depth is {depth_m.shape[::-1]}, camera_info says '
+        raise BadInput(f'depth is {depth_m.shape[::-1]}, camera_info says '
                          f'{depth_camera.width}x{depth_camera.height}')
     valid = np.isfinite(depth_m) & (depth_m > 0)
     return transform_points(T_color_depth, _rays(depth_camera)[valid] * depth_m[valid, None])
@@ -161,7 +162,7 @@ def depth_corners(obs: Observation, camera: CameraModel) -> np.ndarray:
     """The paper's 3D corners from depth: each corner's ray meets the plane reconstructed from
     the depth points on the board (paper 000 Fig. 8, "Board Plane Reconstruction")."""
     if obs.plane_points is None or len(obs.plane_points) < 10:
-        raise ValueError('no depth on the target')
+        raise BadInput('no depth on the target')
     n, d = fit_plane(obs.plane_points)
     rays = np.hstack([camera.undistort_pixels(obs.detection.pixels), np.ones((obs.corners, 1))])
     return rays * (d / (rays @ n))[:, None]

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
+from volcap_core.errors import BadInput
 from volcap_core.poses import rotation_angle_deg, transform_points
 
 
@@ -77,10 +78,10 @@ def refine_with_icp(T_world_color: dict[str, np.ndarray], points_color: dict[str
     Returns the refined T_world_color (the reference camera's unchanged) and a report per
     camera (every camera but the reference)."""
     if reference not in T_world_color:
-        raise ValueError(f'reference camera {reference!r} is not in the calibration')
+        raise BadInput(f'reference camera {reference!r} is not in the calibration')
     missing = sorted(set(T_world_color) - set(points_color))
     if missing:
-        raise ValueError(f'no depth points for cameras {missing}')
+        raise BadInput(f'no depth points for cameras {missing}')
     centre = look_at_centre(T_world_color)
     clouds = {}
     for c, pts in points_color.items():

@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from volcap_core.bag_io import BagReader
 from volcap_core.calibration import Calibration
+from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write
 from volcap_core.frames import frame_sets, read_rig
 from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, PHASE
@@ -45,7 +46,7 @@ def calibrator_from_bag(bag: str | Path, board: BoardConfig, cfg: CalibrationCon
                                            for n, f in fs.cameras.items()})
         bar.set_postfix(seen=sum('corners' in s for s in status.values()), observations=len(calibrator.observations))
     if calibrator.views == 0:
-        raise ValueError(f'{bag} has no frame sets in the {CALIBRATION_PHASE!r} phase'
+        raise BadInput(f'{bag} has no frame sets in the {CALIBRATION_PHASE!r} phase'
                          + ('' if all_frames else '; pass --all-frames to use every frame set'))
     return calibrator
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from volcap_core.calibration import Calibration
+from volcap_core.errors import BadInput
 from volcap_core.rig import Rig
 from volcap_core.settings import color_transport_setting, setting, tf_prefix_setting
 from volcap_core.topics import CALIBRATION_PHASE, camera_names
@@ -66,7 +67,7 @@ class CalibrationSession:
         one with cameras the service does not listen to is refused (ValueError)."""
         unheard = [c for c in rig.names if c not in self.cfg.cameras]
         if unheard:
-            raise ValueError(f'rig cameras {unheard} are not in the cameras parameter; restart with them listed')
+            raise BadInput(f'rig cameras {unheard} are not in the cameras parameter; restart with them listed')
         with self._lock:
             same = self.rig is not None and rig.names == self.rig.names
             changed = self.rig is not None and not same
@@ -101,7 +102,7 @@ class CalibrationSession:
         """Solve with every view so far and write ``output`` (atomically). Raises
         CalibrationError (naming the cameras) or OSError; the file is then unchanged."""
         if self.calibrator is None:
-            raise ValueError('no rig description yet')
+            raise BadInput('no rig description yet')
         t0 = time.monotonic()
         with self._lock:
             calibrator = self.calibrator

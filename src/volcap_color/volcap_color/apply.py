@@ -29,6 +29,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from volcap_core.color import ColorModel, linear_to_srgb, srgb_to_linear
+from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write
 
 ENCODE_STEPS = 16384     # linear [0, 1] -> uint8 table; finer than one sRGB level everywhere
@@ -133,9 +134,9 @@ class RegionLut:
         t = self.table
         if t.ndim != 6 or t.shape[0] != t.shape[1] or t.shape[1] != t.shape[2] or t.shape[5] != 3 \
                 or min(t.shape[:5]) < 2:
-            raise ValueError(f'a region LUT is (N, N, N, ny, nx, 3) with every size >= 2, got {t.shape}')
+            raise BadInput(f'a region LUT is (N, N, N, ny, nx, 3) with every size >= 2, got {t.shape}')
         if not np.isfinite(t).all():
-            raise ValueError('the region LUT has non-finite entries')
+            raise BadInput('the region LUT has non-finite entries')
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -173,7 +174,7 @@ class RegionLut:
             with np.load(path) as z:
                 return cls(z['table'])
         except (OSError, KeyError, ValueError, EOFError) as e:
-            raise ValueError(f'{path}: not a region LUT ({e})') from e
+            raise BadInput(f'{path}: not a region LUT ({e})') from e
 
 
 def _packed_tables(matrix: np.ndarray, decode: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -186,7 +187,7 @@ def _packed_tables(matrix: np.ndarray, decode: np.ndarray) -> tuple[np.ndarray, 
     fields = terms + bias[:, :, None]
     size = int(fields.max(axis=2).sum(axis=1).max()) + 1
     if size >= 1 << FIELD_BITS:
-        raise ValueError(f'colour model gains too large for the packed tables ({size} steps)')
+        raise BadInput(f'colour model gains too large for the packed tables ({size} steps)')
     packed = np.zeros((3, 256), np.int64)
     for k in range(3):
         packed += fields[k] << (FIELD_BITS * k)
@@ -240,7 +241,7 @@ class ImageCorrector:
         """The corrected image, written into ``out`` (same shape, uint8, contiguous) if given:
         a caller at frame rate reuses one buffer instead of paging in a fresh 2.7 MB each time."""
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(f'expected an (H, W, 3) uint8 RGB image, got {image.dtype} {image.shape}')
+            raise BadInput(f'expected an (H, W, 3) uint8 RGB image, got {image.dtype} {image.shape}')
         if out is None or out.shape != image.shape or out.dtype != np.uint8 or not out.flags.c_contiguous:
             out = np.empty_like(image, order='C')
         if self.kind == 'diagonal':

@@ -12,6 +12,7 @@ import numpy as np
 
 from volcap_core.calibration import Calibration
 from volcap_core.color import ColorModel
+from volcap_core.errors import BadInput
 
 from .apply import ImageCorrector, RegionLut
 
@@ -53,10 +54,10 @@ class CameraCorrection:
             calibration = Calibration.from_yaml(text)
             cam = calibration.cameras.get(self.camera)
             if cam is None:
-                raise ValueError(f'the calibration has no camera {self.camera!r} '
+                raise BadInput(f'the calibration has no camera {self.camera!r} '
                                  f'(it has {", ".join(calibration.cameras)})')
             if cam.color is None:
-                raise ValueError(f'the calibration has no colour model for {self.camera}')
+                raise BadInput(f'the calibration has no colour model for {self.camera}')
             model = ColorModel.from_dict(cam.color)
             corrector = ImageCorrector(model)
         except ValueError as e:

@@ -23,6 +23,7 @@ import numpy as np
 
 from volcap_core.calibration import Calibration
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput
 from volcap_core.sampling import sample_bilinear
 
 
@@ -41,7 +42,7 @@ class View:
     def __post_init__(self):
         h, w = self.depth.shape
         if self.color.shape != (h, w, 3) or (self.camera.height, self.camera.width) != (h, w):
-            raise ValueError(f'{self.name}: colour {self.color.shape[:2]}, depth {self.depth.shape} and camera '
+            raise BadInput(f'{self.name}: colour {self.color.shape[:2]}, depth {self.depth.shape} and camera '
                              f'{self.camera.height}x{self.camera.width} must share one pixel grid')
 
     def rays(self) -> np.ndarray:

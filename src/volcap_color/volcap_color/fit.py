@@ -9,6 +9,7 @@ import numpy as np
 
 from volcap_core.calibration import Calibration
 from volcap_core.color import ColorModel
+from volcap_core.errors import BadInput
 from volcap_core.settings import setting, validate
 
 from .correspondence import CorrespondenceConfig, View, cameras_in, find_correspondences, merge_matches
@@ -52,14 +53,14 @@ def run(cfg: ColorFitConfig, sets: list[list[View]], calibration: Calibration,
     cameras = cameras_in(sets, calibration)
     matches = merge_matches([find_correspondences(v, cfg.correspondence) for v in sets], cfg.fit_min_fraction)
     if not matches:
-        raise ValueError(f'no camera pair has {cfg.fit_min_fraction:.1%} of its pixels in correspondence')
+        raise BadInput(f'no camera pair has {cfg.fit_min_fraction:.1%} of its pixels in correspondence')
     base = None
     if cfg.reference == 'chart':
         missing = [c for c in cameras if calibration.cameras[c].color is None]
         if missing:
-            raise ValueError(f'reference chart needs chart colour models; {", ".join(missing)} have none')
+            raise BadInput(f'reference chart needs chart colour models; {", ".join(missing)} have none')
         if anchor is None:
-            raise ValueError('reference chart needs the chart samples of the board views')
+            raise BadInput('reference chart needs the chart samples of the board views')
         base = {c: ColorModel.from_dict(calibration.cameras[c].color) for c in cameras}
     choice = choose_chart_free_model(matches, cameras, cfg.reference, base, anchor) if cfg.model == 'auto' else \
         ModelChoice(cfg.model, why='chosen by the caller')

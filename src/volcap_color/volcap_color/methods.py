@@ -25,6 +25,7 @@ from scipy.optimize import linprog
 from scipy.sparse.csgraph import shortest_path
 
 from volcap_core.color import ColorModel, srgb_to_lab, srgb_to_linear
+from volcap_core.errors import BadInput
 
 from .apply import pixel_centres
 from .correspondence import Matches
@@ -242,7 +243,7 @@ def _features(model: str, linear: np.ndarray, channel: int) -> np.ndarray:
         return linear
     if model == 'affine_3x4':
         return np.hstack([linear, ones])
-    raise ValueError(f'unknown chart-free model {model!r}; choose from {CHART_FREE_MODELS}')
+    raise BadInput(f'unknown chart-free model {model!r}; choose from {CHART_FREE_MODELS}')
 
 
 def _identity_row(model: str, channel: int) -> np.ndarray:
@@ -293,11 +294,11 @@ def chart_free_fit(matches: dict[tuple[str, str], Matches], cameras: list[str], 
     ridge towards the identity keeps a camera with few matches near where it started. Cameras
     without any correspondence get the identity."""
     if model not in CHART_FREE_MODELS:
-        raise ValueError(f'unknown chart-free model {model!r}; choose from {CHART_FREE_MODELS}')
+        raise BadInput(f'unknown chart-free model {model!r}; choose from {CHART_FREE_MODELS}')
     if reference not in ('mean', 'chart') and reference not in cameras:
-        raise ValueError(f'reference must be "mean", "chart" or one of {cameras}, got {reference!r}')
+        raise BadInput(f'reference must be "mean", "chart" or one of {cameras}, got {reference!r}')
     if reference == 'chart' and not (anchor and all(len(anchor.get(c, ((),))[0]) for c in cameras)):
-        raise ValueError('reference "chart" needs chart samples of every camera')
+        raise BadInput('reference "chart" needs chart samples of every camera')
     base = base or {}
 
     def linear(c, rgb):

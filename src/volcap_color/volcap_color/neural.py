@@ -35,6 +35,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write, write_json
 
 from .apply import ImageCorrector, RegionLut, pixel_centres
@@ -141,11 +142,11 @@ def training_samples(sets: list[list[View]], cameras: list[str], total: int | No
     rng = np.random.default_rng(seed)
     views = [v for views in sets for v in views if v.name in cameras]
     if not views:
-        raise ValueError('no view of the calibrated cameras to train on')
+        raise BadInput('no view of the calibrated cameras to train on')
     share = None if total is None else max(1, total // len(views))
     samples = concat_samples([view_samples(v, share, rng) for v in views])
     if not len(samples):
-        raise ValueError('the training views have no pixel with depth: is the subject in view and the clean plate '
+        raise BadInput('the training views have no pixel with depth: is the subject in view and the clean plate '
                          'learnt?')
     return samples
 
@@ -155,7 +156,7 @@ def pick_device(name: str) -> torch.device:
     if name == 'auto':
         return torch.device('cuda' if torch.cuda.is_available() else 'cpu')
     if name == 'cuda' and not torch.cuda.is_available():
-        raise ValueError('--device cuda: torch sees no CUDA device')
+        raise BadInput('--device cuda: torch sees no CUDA device')
     return torch.device(name)
 
 
@@ -170,7 +171,7 @@ def cpu_has_bf16() -> bool:
 
 def use_bf16(precision: str, device: torch.device) -> bool:
     if precision not in ('auto', 'bf16', 'fp32'):
-        raise ValueError(f'precision must be auto, bf16 or fp32, not {precision!r}')
+        raise BadInput(f'precision must be auto, bf16 or fp32, not {precision!r}')
     if precision != 'auto':
         return precision == 'bf16'
     return torch.cuda.is_bf16_supported() if device.type == 'cuda' else cpu_has_bf16()
@@ -206,7 +207,7 @@ def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tens
         state = torch.load(checkpoint, map_location=device, weights_only=False)
         if state['label'] == label:
             if state.get('settings') != settings:
-                raise ValueError(f'--resume: {checkpoint} ({label}) was trained with other settings; use a new --out '
+                raise BadInput(f'--resume: {checkpoint} ({label}) was trained with other settings; use a new --out '
                                  'or leave out --resume')
             model.load_state_dict(state['model'])
             optimiser.load_state_dict(state['optimiser'])
@@ -329,7 +330,7 @@ def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.devi
         return None
     saved = torch.load(path, map_location=device, weights_only=False)
     if saved.get('config') != asdict(cfg) or 'result' not in saved:
-        raise ValueError(f'--resume: {path} was trained with other settings; use a new --out or leave out --resume')
+        raise BadInput(f'--resume: {path} was trained with other settings; use a new --out or leave out --resume')
     return saved
 
 
@@ -340,7 +341,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if cfg.reference != 'mean' and cfg.reference not in cameras:
-        raise ValueError(f'reference {cfg.reference!r} is not one of the cameras ({", ".join(cameras)}) or mean')
+        raise BadInput(f'reference {cfg.reference!r} is not one of the cameras ({", ".join(cameras)}) or mean')
     checkpoint = out_dir / CHECKPOINT
     if not resume:
         checkpoint.unlink(missing_ok=True)
@@ -351,7 +352,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     centres = {v.name: v.T_world_camera[:3, 3].astype(np.float32) for views in train_sets for v in views}
     missing = [c for c in cameras if c not in centres]
     if missing:
-        raise ValueError(f'{", ".join(missing)} are in no training frame set')
+        raise BadInput(f'{", ".join(missing)} are in no training frame set')
 
     samples = training_samples(train_sets, cameras, cfg.points, cfg.seed)
     t = lambda a: torch.as_tensor(a, device=device)
@@ -528,7 +529,7 @@ def run(sets: list[list[View]], cameras: list[str], cfg: HarmoniseConfig, out_di
     saw; or on all), export the live form checked on the other sets, write the manifest (with
     ``sources``, e.g. the bag and calibration) and the training figure."""
     if train_sets not in ('even', 'all'):
-        raise ValueError(f"train_sets must be 'even' or 'all', got {train_sets!r}")
+        raise BadInput(f"train_sets must be 'even' or 'all', got {train_sets!r}")
     cfg.validate()
     trained, checked = split_frame_sets(len(sets)) if train_sets == 'even' else (list(range(len(sets))),) * 2
     t1 = time.perf_counter()

@@ -25,6 +25,7 @@ from typing import Hashable
 
 import numpy as np
 
+from .errors import BadInput
 from .sync import DEFAULT_PERIOD_NS, PeriodEstimate
 
 # Stamp gaps longer than this are a pause (a restarted driver, a looped bag), not missed frames.
@@ -41,7 +42,7 @@ class AdmissionRule:
 
     def __post_init__(self):
         if self.every < 1 or self.period_ns <= 0:
-            raise ValueError(f'admission needs every >= 1 and a positive period, got every={self.every} '
+            raise BadInput(f'admission needs every >= 1 and a positive period, got every={self.every} '
                              f'period_ns={self.period_ns}')
 
     def slot(self, stamp_ns: int) -> int:
@@ -60,11 +61,11 @@ class AdmissionRule:
         try:
             doc = json.loads(text)
         except json.JSONDecodeError as e:
-            raise ValueError(f'admission rule is not JSON: {e}') from None
+            raise BadInput(f'admission rule is not JSON: {e}') from None
         if not isinstance(doc, dict) or set(doc) != {'every', 'origin_ns', 'period_ns', 'since_ns'}:
-            raise ValueError(f'admission rule needs exactly every, origin_ns, period_ns, since_ns; got {text[:200]!r}')
+            raise BadInput(f'admission rule needs exactly every, origin_ns, period_ns, since_ns; got {text[:200]!r}')
         if not all(isinstance(v, int) and not isinstance(v, bool) for v in doc.values()):
-            raise ValueError(f'admission rule fields must be integers; got {text[:200]!r}')
+            raise BadInput(f'admission rule fields must be integers; got {text[:200]!r}')
         return cls(**doc)
 
 
@@ -181,7 +182,7 @@ class AdmissionController:
     def __init__(self, min_every: int = 1, max_every: int = 60, hold_s: float = 2.0, calm_s: float = 4.0,
                  headroom: float = 0.85, lead_ns: int = 300_000_000):
         if not 1 <= min_every <= max_every:
-            raise ValueError(f'need 1 <= min_every <= max_every, got {min_every}, {max_every}')
+            raise BadInput(f'need 1 <= min_every <= max_every, got {min_every}, {max_every}')
         self.min_every, self.max_every = min_every, max_every
         self.hold_s, self.calm_s, self.headroom, self.lead_ns = hold_s, calm_s, headroom, lead_ns
         self.clock = RigClock()

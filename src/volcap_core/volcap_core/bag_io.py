@@ -24,6 +24,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.typesys import Stores, get_typestore
 
+from .errors import BadBag, BadInput
 from .files import atomic_write
 from .mcap_file import McapFile
 
@@ -31,7 +32,7 @@ COMPRESSIONS = ('none', 'zstd')
 log = logging.getLogger('volcap.bag')
 
 
-class BagError(RuntimeError):
+class BagError(BadBag):
     """A bag is missing, unreadable, corrupt or truncated."""
 
 
@@ -79,7 +80,7 @@ class BagWriter:
     def __init__(self, path: str | Path, compression: str = 'none', split_bytes: int = 0,
                  split_seconds: float = 0.0, chunk_bytes: int = 8 << 20):
         if compression not in COMPRESSIONS:
-            raise ValueError(f'compression must be one of {COMPRESSIONS}, got {compression!r}')
+            raise BadInput(f'compression must be one of {COMPRESSIONS}, got {compression!r}')
         self.path = Path(path)
         self.compression = '' if compression == 'none' else compression
         self.split_bytes, self.split_ns = int(split_bytes), int(split_seconds * 1e9)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from .errors import BadInput, UnknownName
 from .files import atomic_write
 from .poses import invert, matrix_to_list, rigid_transform
 
@@ -16,7 +17,7 @@ VERSION = 1
 STUDIO_FRAME = 'volcap_studio'
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(BadInput):
     """A calibration file or message that is not a usable volcap calibration (says which field)."""
 
 
@@ -115,7 +116,7 @@ class Calibration:
 
     def T_world_color(self, camera: str) -> np.ndarray:
         if camera not in self.cameras:
-            raise KeyError(f'camera {camera!r} is not in the calibration ({", ".join(self.cameras)})')
+            raise UnknownName(f'camera {camera!r} is not in the calibration ({", ".join(self.cameras)})')
         return self.cameras[camera].T_world_color
 
     @property

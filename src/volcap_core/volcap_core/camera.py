@@ -11,6 +11,8 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
+from .errors import BadInput
+
 DISTORTION_MODELS = {5: 'plumb_bob', 8: 'rational_polynomial'}
 
 
@@ -29,15 +31,15 @@ class CameraModel:
 
     def __post_init__(self):
         if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
-            raise ValueError(f'camera size must be 1-{MAX_IMAGE_SIDE} pixels a side, got {self.width}x{self.height}')
+            raise BadInput(f'camera size must be 1-{MAX_IMAGE_SIDE} pixels a side, got {self.width}x{self.height}')
         if not (np.isfinite(self.fx) and np.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
-            raise ValueError(f'focal lengths must be positive, got fx={self.fx} fy={self.fy}')
+            raise BadInput(f'focal lengths must be positive, got fx={self.fx} fy={self.fy}')
         if not (np.isfinite(self.cx) and np.isfinite(self.cy)):
-            raise ValueError(f'principal point must be finite, got cx={self.cx} cy={self.cy}')
+            raise BadInput(f'principal point must be finite, got cx={self.cx} cy={self.cy}')
         if len(self.dist) not in DISTORTION_MODELS:
-            raise ValueError(f'expected 5 or 8 distortion coefficients, got {len(self.dist)}')
+            raise BadInput(f'expected 5 or 8 distortion coefficients, got {len(self.dist)}')
         if not np.all(np.isfinite(self.dist)):
-            raise ValueError(f'distortion coefficients must be finite, got {list(self.dist)}')
+            raise BadInput(f'distortion coefficients must be finite, got {list(self.dist)}')
         # plain Python numbers (models built from numpy arrays must still serialise to YAML)
         for name in ('width', 'height'):
             object.__setattr__(self, name, int(getattr(self, name)))
@@ -97,7 +99,7 @@ class CameraModel:
             return cls(int(d['width']), int(d['height']), float(d['fx']), float(d['fy']),
                        float(d['cx']), float(d['cy']), tuple(float(v) for v in d.get('D', (0.0,) * 5)))
         except (KeyError, TypeError, AttributeError, OverflowError) as e:
-            raise ValueError(f'not a camera model ({type(e).__name__}: {e})') from e
+            raise BadInput(f'not a camera model ({type(e).__name__}: {e})') from e
 
 
 # Azure Kinect: how each sensor mode crops and scales the factory calibration image.
@@ -126,7 +128,7 @@ def camera_from_k4a(params: list[float], mode: tuple) -> CameraModel:
     image size, as stored in the device's calibration JSON.
     """
     if len(params) < 14:
-        raise ValueError(f'Azure Kinect intrinsics need 14 parameters, got {len(params)}')
+        raise BadInput(f'Azure Kinect intrinsics need 14 parameters, got {len(params)}')
     (bw, bh), (ox, oy), (w, h) = mode
     cx, cy, fx, fy, k1, k2, k3, k4, k5, k6, _codx, _cody, p2, p1 = params[:14]
     return CameraModel(w, h, fx * bw, fy * bh, cx * bw - ox - 0.5, cy * bh - oy - 0.5,

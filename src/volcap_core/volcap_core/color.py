@@ -15,6 +15,8 @@ import colour as color_science
 import cv2
 import numpy as np
 
+from .errors import BadInput
+
 METHODS = ('paper_diagonal', 'matrix_3x3', 'affine_3x4', 'root_polynomial_2', 'root_polynomial_3', 'gamma_3x3')
 ROOT_DEGREE = {'root_polynomial_2': 2, 'root_polynomial_3': 3}
 
@@ -56,7 +58,7 @@ def model_features(method: str, linear: np.ndarray, exponents=None) -> np.ndarra
         return np.concatenate([linear, np.ones(linear.shape[:-1] + (1,))], axis=-1)
     if method in ROOT_DEGREE:
         return color_science.characterisation.polynomial_expansion_Finlayson2015(linear, ROOT_DEGREE[method])
-    raise ValueError(f'unknown colour model {method!r}; choose from {METHODS}')
+    raise BadInput(f'unknown colour model {method!r}; choose from {METHODS}')
 
 
 @dataclass
@@ -74,19 +76,19 @@ class ColorModel:
 
     def __post_init__(self):
         if self.method not in METHODS:
-            raise ValueError(f'unknown colour model {self.method!r}; choose from {METHODS}')
+            raise BadInput(f'unknown colour model {self.method!r}; choose from {METHODS}')
         self.matrix = np.asarray(self.matrix, dtype=np.float64)
         if self.exponents is not None and (len(self.exponents) != 3 or not all(
                 np.isfinite(e) and e > 0 for e in self.exponents)):
-            raise ValueError(f'exponents must be 3 positive numbers, got {self.exponents}')
+            raise BadInput(f'exponents must be 3 positive numbers, got {self.exponents}')
         features = 3 if self.method == 'paper_diagonal' else \
             model_features(self.method, np.full((1, 3), 0.5), self.exponents).shape[1]
         if self.matrix.shape != (3, features) or not np.all(np.isfinite(self.matrix)):
-            raise ValueError(f'a {self.method} model needs a finite 3x{features} matrix, got {self.matrix.shape}')
+            raise BadInput(f'a {self.method} model needs a finite 3x{features} matrix, got {self.matrix.shape}')
         if self.post is not None:
             self.post = np.asarray(self.post, dtype=np.float64)
             if self.post.shape != (3, 4) or self.method == 'paper_diagonal' or not np.all(np.isfinite(self.post)):
-                raise ValueError('post must be a finite 3x4 affine map on a linear-RGB model')
+                raise BadInput('post must be a finite 3x4 affine map on a linear-RGB model')
 
     def apply(self, rgb: np.ndarray) -> np.ndarray:
         """sRGB (..., 3) in [0, 1] -> corrected sRGB in [0, 1]."""
@@ -103,7 +105,7 @@ class ColorModel:
     def apply_image(self, image: np.ndarray) -> np.ndarray:
         """uint8 RGB image -> corrected uint8 RGB image (a 256^3 table would be the live form)."""
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(f'expected an (H, W, 3) uint8 image, got {image.dtype} {image.shape}')
+            raise BadInput(f'expected an (H, W, 3) uint8 image, got {image.dtype} {image.shape}')
         if self.method == 'paper_diagonal':
             return cv2.transform(image, self.matrix.astype(np.float32))
         out = self.apply(image.reshape(-1, 3) / 255.0)
@@ -120,7 +122,7 @@ class ColorModel:
     @classmethod
     def from_dict(cls, d: dict) -> 'ColorModel':
         if not isinstance(d, dict) or 'method' not in d or 'matrix' not in d:
-            raise ValueError(f'a colour model is a mapping with method and matrix, got {d!r:.80}')
+            raise BadInput(f'a colour model is a mapping with method and matrix, got {d!r:.80}')
         exponents, post = d.get('exponents'), d.get('post')
         return cls(d['method'], np.asarray(d['matrix'], dtype=np.float64),
                    tuple(float(v) for v in exponents) if exponents is not None else None,

@@ -21,10 +21,11 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MeshFile
 
 from .camera import DISTORTION_MODELS, CameraModel
+from .errors import BadInput
 from .poses import from_xyz_quat, to_xyz_quat
 
 
-class MessageConversionError(ValueError):
+class MessageConversionError(BadInput):
     """A message cannot be converted: wrong encoding, sizes or buffer."""
 
 
@@ -49,7 +50,7 @@ def cdr_stamp_format(data: bytes) -> str:
     # 4-byte CDR encapsulation header (byte 1: little-endian flag), then stamp.sec (int32) and
     # stamp.nanosec (uint32) of the leading std_msgs/Header.
     if len(data) < 12 or data[0] != 0:
-        raise ValueError('not a CDR-encapsulated message')
+        raise BadInput('not a CDR-encapsulated message')
     return '<iI' if data[1] & 1 else '>iI'
 
 

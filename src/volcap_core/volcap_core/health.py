@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .errors import BadInput
 from .sync import DEFAULT_PERIOD_NS, PeriodEstimate, tolerance_for_period
 
 STREAMS = ('color', 'depth')
@@ -61,7 +62,7 @@ class RigHealth:
     def __init__(self, cameras: list[str], window_s: float = 10.0, drift_warn_ms_per_s: float = 0.2,
                  min_rate_share: float = 0.9, silent_periods: float = 10.0):
         if not cameras:
-            raise ValueError('the rig health monitor needs at least one camera')
+            raise BadInput('the rig health monitor needs at least one camera')
         self.cameras = list(cameras)
         self.window_ns = int(window_s * 1e9)
         self.drift_warn = drift_warn_ms_per_s

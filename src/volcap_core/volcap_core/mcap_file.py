@@ -34,6 +34,7 @@ from mcap.records import (
     SummaryOffset,
 )
 
+from .errors import BadInput
 from .files import write_failure
 
 MAGIC = b'\x89MCAP0\r\n'
@@ -57,7 +58,7 @@ class McapFile:
     def __init__(self, path: str | Path, compression: str = '', chunk_bytes: int = 8 << 20,
                  library: str = 'volcap'):
         if compression not in ('', 'zstd'):
-            raise ValueError(f'MCAP chunk compression must be "" or "zstd", got {compression!r}')
+            raise BadInput(f'MCAP chunk compression must be "" or "zstd", got {compression!r}')
         self.path = Path(path)
         self.compression = compression
         self.chunk_bytes = chunk_bytes

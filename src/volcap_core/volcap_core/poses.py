@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .errors import BadInput
+
 
 def make_transform(R: np.ndarray, t) -> np.ndarray:
     T = np.eye(4)
@@ -33,7 +35,7 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     z /= np.linalg.norm(z)
     x = np.cross(z, up)
     if np.linalg.norm(x) < 1e-9:
-        raise ValueError('look_at: viewing direction is parallel to up')
+        raise BadInput('look_at: viewing direction is parallel to up')
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_transform(np.stack([x, y, z], axis=1), eye)
@@ -76,7 +78,7 @@ def matrix_to_list(T: np.ndarray) -> list[list[float]]:
 def matrix_from_list(rows) -> np.ndarray:
     T = np.asarray(rows, dtype=np.float64)
     if T.shape != (4, 4):
-        raise ValueError(f'expected a 4x4 matrix, got shape {T.shape}')
+        raise BadInput(f'expected a 4x4 matrix, got shape {T.shape}')
     return T
 
 
@@ -90,7 +92,7 @@ def convergence_point(poses: list[np.ndarray]) -> np.ndarray:
         A += P
         b += P @ T[:3, 3]
     if len(poses) < 2 or np.linalg.cond(A) > 1e6:
-        raise ValueError('cameras aimed from one direction have no convergence point')
+        raise BadInput('cameras aimed from one direction have no convergence point')
     return np.linalg.solve(A, b)
 
 
@@ -99,10 +101,10 @@ def rigid_transform(value, what: str) -> np.ndarray:
     try:
         T = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as e:
-        raise ValueError(f'{what}: not a 4x4 matrix of numbers ({e})') from e
+        raise BadInput(f'{what}: not a 4x4 matrix of numbers ({e})') from e
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f'{what}: expected a finite 4x4 matrix, got shape {T.shape}')
+        raise BadInput(f'{what}: expected a finite 4x4 matrix, got shape {T.shape}')
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 or not np.allclose(T[3], (0, 0, 0, 1)):
-        raise ValueError(f'{what}: not a rigid transform (rotation and translation)')
+        raise BadInput(f'{what}: not a rigid transform (rotation and translation)')
     return T

@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 
 from .camera import K4A_COLOR_MODES, K4A_DEPTH_MODES, CameraModel, camera_from_k4a
+from .errors import BadInput, UnknownName
 from .poses import make_transform, matrix_to_list, rigid_transform
 
 RIG_VERSION = 1
@@ -45,16 +46,16 @@ class RigCamera:
     def from_dict(cls, d: dict) -> 'RigCamera':
         """Checked: a ValueError names the camera and the field that is wrong."""
         if not isinstance(d, dict) or not d.get('name'):
-            raise ValueError(f'rig camera: expected a mapping with a name, got {d!r:.80}')
+            raise BadInput(f'rig camera: expected a mapping with a name, got {d!r:.80}')
         name = str(d['name'])
         models = {}
         for stream in ('color', 'depth'):
             try:
                 models[stream] = CameraModel.from_dict(d[stream])
             except KeyError as e:
-                raise ValueError(f'rig camera {name}: no {stream} camera model') from e
+                raise BadInput(f'rig camera {name}: no {stream} camera model') from e
             except ValueError as e:
-                raise ValueError(f'rig camera {name}: {stream}: {e}') from e
+                raise BadInput(f'rig camera {name}: {stream}: {e}') from e
         T = rigid_transform(d.get('T_color_depth', np.eye(4).tolist()), f'rig camera {name}: T_color_depth')
         return cls(name, models['color'], models['depth'], T, str(d.get('serial') or ''))
 
@@ -67,7 +68,7 @@ class Rig:
     def __post_init__(self):
         names = [c.name for c in self.cameras]
         if len(set(names)) != len(names):
-            raise ValueError(f'camera names must be unique, got {names}')
+            raise BadInput(f'camera names must be unique, got {names}')
 
     @property
     def names(self) -> list[str]:
@@ -77,7 +78,7 @@ class Rig:
         for cam in self.cameras:
             if cam.name == name:
                 return cam
-        raise KeyError(f'no camera {name!r} in rig (cameras: {self.names})')
+        raise UnknownName(f'no camera {name!r} in rig (cameras: {self.names})')
 
     def to_yaml(self) -> str:
         return yaml.safe_dump({'version': RIG_VERSION, 'name': self.name,
@@ -88,12 +89,12 @@ class Rig:
         try:
             d = yaml.safe_load(text)
         except yaml.YAMLError as e:
-            raise ValueError(f'rig description is not YAML: {e}') from e
+            raise BadInput(f'rig description is not YAML: {e}') from e
         if not isinstance(d, dict) or not isinstance(d.get('cameras'), list) or not d['cameras']:
-            raise ValueError('rig YAML must be a mapping with a "cameras" list')
+            raise BadInput('rig YAML must be a mapping with a "cameras" list')
         version = d.get('version', RIG_VERSION)
         if not isinstance(version, int) or version > RIG_VERSION:
-            raise ValueError(f'rig YAML version {version!r} is not one this volcap reads (newer than {RIG_VERSION}?)')
+            raise BadInput(f'rig YAML version {version!r} is not one this volcap reads (newer than {RIG_VERSION}?)')
         return cls([RigCamera.from_dict(c) for c in d['cameras']], str(d.get('name', 'volcap')))
 
 
@@ -108,11 +109,11 @@ def rig_camera_from_k4a(calibration: dict | str | Path, name: str, color_mode: s
         cams = {c['Purpose']: c for c in calibration['CalibrationInformation']['Cameras']}
         depth, color = cams['CALIBRATION_CameraPurposeDepth'], cams['CALIBRATION_CameraPurposePhotoVideo']
     except (KeyError, TypeError) as e:
-        raise ValueError(f'not an Azure Kinect calibration JSON: missing {e}') from e
+        raise BadInput(f'not an Azure Kinect calibration JSON: missing {e}') from e
     if color_mode not in K4A_COLOR_MODES:
-        raise ValueError(f'unknown colour mode {color_mode!r}; known: {sorted(K4A_COLOR_MODES)}')
+        raise BadInput(f'unknown colour mode {color_mode!r}; known: {sorted(K4A_COLOR_MODES)}')
     if depth_mode not in K4A_DEPTH_MODES:
-        raise ValueError(f'unknown depth mode {depth_mode!r}; known: {sorted(K4A_DEPTH_MODES)}')
+        raise BadInput(f'unknown depth mode {depth_mode!r}; known: {sorted(K4A_DEPTH_MODES)}')
     # Each camera's Rt maps depth-camera points into that camera (metres).
     T_color_depth = make_transform(np.reshape(color['Rt']['Rotation'], (3, 3)), color['Rt']['Translation'])
     return RigCamera(name, camera_from_k4a(color['Intrinsics']['ModelParameters'], K4A_COLOR_MODES[color_mode]),
@@ -127,7 +128,7 @@ def _echoed(source: str | Path) -> dict:
     for doc in yaml.safe_load_all(text):
         if isinstance(doc, dict):
             return doc
-    raise ValueError('no message in the echoed YAML')
+    raise BadInput('no message in the echoed YAML')
 
 
 def camera_model_from_echo(info: dict) -> CameraModel:
@@ -138,7 +139,7 @@ def camera_model_from_echo(info: dict) -> CameraModel:
         dist = tuple(float(v) for v in info.get('d') or [0.0] * 5)
         return CameraModel(int(info['width']), int(info['height']), k[0], k[4], k[2], k[5], dist)
     except (KeyError, IndexError, TypeError, ValueError) as e:
-        raise ValueError(f'not a camera_info message: {e}') from e
+        raise BadInput(f'not a camera_info message: {e}') from e
 
 
 def rig_camera_from_orbbec(name: str, extrinsics, color_info, depth_info, serial: str = '') -> RigCamera:
@@ -150,7 +151,7 @@ def rig_camera_from_orbbec(name: str, extrinsics, color_info, depth_info, serial
         R = np.reshape([float(v) for v in ex['rotation']], (3, 3))
         t = [float(v) for v in ex['translation']]
     except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f'not an Orbbec depth_to_color extrinsics message: {e}') from e
+        raise BadInput(f'not an Orbbec depth_to_color extrinsics message: {e}') from e
     if len(t) != 3 or not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
-        raise ValueError('Orbbec extrinsics need a rotation matrix (9 values) and 3 translation values')
+        raise BadInput('Orbbec extrinsics need a rotation matrix (9 values) and 3 translation values')
     return RigCamera(name, camera_model_from_echo(ci), camera_model_from_echo(di), make_transform(R, t), serial)

@@ -27,6 +27,7 @@ from tf2_msgs.msg import TFMessage
 from . import qos, settings, topics, transport
 from .admission import Admission, AdmissionRule
 from .conversions import cdr_stamp_ns, diagnostic_array, diagnostic_status, tf_message_to_transforms
+from .errors import BadInput
 from .tf import StaticTransforms
 
 RCLError = _rclpy.RCLError
@@ -223,4 +224,4 @@ class AdmissionListener(Admission):
                 return None
             return deserialize_message(data, kind)
         except (struct.error, RuntimeError) as e:     # RMWError: not a message of this type
-            raise ValueError(f'not a serialised {kind.__name__}: {e}') from None
+            raise BadInput(f'not a serialised {kind.__name__}: {e}') from None

@@ -16,6 +16,8 @@ import typing
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
 from typing import Any
 
+from .errors import BadInput
+
 
 def setting(default=MISSING, description: str = '', low=None, high=None, *, choices: tuple | None = None,
             read_only: bool = False, none_as=None, default_factory=MISSING):
@@ -110,7 +112,7 @@ def build(cls, values: dict[str, Any]):
     specs = {s.name: s for s in settings(cls)}
     unknown = set(values) - set(specs)
     if unknown:
-        raise ValueError(f'{cls.__name__} has no setting {", ".join(sorted(unknown))}')
+        raise BadInput(f'{cls.__name__} has no setting {", ".join(sorted(unknown))}')
     nested: dict[tuple, dict] = {}
     for name, value in values.items():
         s = specs[name]
@@ -146,18 +148,18 @@ def validate(cfg) -> None:
 def _check(s: Setting, value) -> None:
     if value is None:
         if s.default is not None:
-            raise ValueError(f'{s.name} must be set')
+            raise BadInput(f'{s.name} must be set')
         return
     if s.choices is not None and value not in s.choices:
-        raise ValueError(f'{s.name} must be one of {", ".join(map(str, s.choices))}, got {value!r}')
+        raise BadInput(f'{s.name} must be one of {", ".join(map(str, s.choices))}, got {value!r}')
     items = value if isinstance(value, tuple) else (value,)
     for item in items:
         if isinstance(item, bool) or not isinstance(item, (int, float)):
             continue
         if item != item:
-            raise ValueError(f'{s.name} must be a number, got {value!r}')
+            raise BadInput(f'{s.name} must be a number, got {value!r}')
         if (s.low is not None and item < s.low) or (s.high is not None and item > s.high):
-            raise ValueError(f'{s.name} must be within {s.low} - {s.high}, got {value!r}')
+            raise BadInput(f'{s.name} must be within {s.low} - {s.high}, got {value!r}')
 
 
 def markdown_table(cls) -> str:

@@ -19,6 +19,8 @@ from typing import Any, Hashable, Sequence
 
 import numpy as np
 
+from .errors import BadInput
+
 # Until the stamps show the frame period, assume the rig's 30 fps.
 DEFAULT_PERIOD_NS = 33_333_333
 # An automatic tolerance stays this far below half the period (stamp jitter of the next frame).
@@ -93,9 +95,9 @@ class FrameSetSynchronizer:
                  tolerance_ns: int | None = None, timeout_ns: int = 200_000_000, max_pending: int = 4):
         """``tolerance_ns`` None: derived from the frame period the stamps show."""
         if not cameras:
-            raise ValueError('synchroniser needs at least one camera')
+            raise BadInput('synchroniser needs at least one camera')
         if (tolerance_ns is not None and tolerance_ns < 0) or timeout_ns <= 0 or max_pending < 1:
-            raise ValueError('tolerance must be >= 0, timeout > 0 and max_pending >= 1')
+            raise BadInput('tolerance must be >= 0, timeout > 0 and max_pending >= 1')
         self.keys = [(c, s) for c in cameras for s in streams]
         self._known = set(self.keys)
         self.fixed_tolerance_ns = None if tolerance_ns is None else int(tolerance_ns)

@@ -13,6 +13,7 @@ from collections import deque
 
 import numpy as np
 
+from .errors import BadInput
 from .poses import invert
 
 
@@ -28,10 +29,10 @@ class StaticTransforms:
         """One static transform; a later one for the same pair replaces it (a driver restarted)."""
         parent, child = parent.lstrip('/'), child.lstrip('/')
         if not parent or not child or parent == child:
-            raise ValueError(f'a static transform needs two different frame ids, got {parent!r} -> {child!r}')
+            raise BadInput(f'a static transform needs two different frame ids, got {parent!r} -> {child!r}')
         T = np.asarray(T_parent_child, dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise ValueError(f'transform {parent} -> {child} is not a finite 4x4 matrix')
+            raise BadInput(f'transform {parent} -> {child} is not a finite 4x4 matrix')
         self._edges.setdefault(parent, {})[child] = T
         self._edges.setdefault(child, {})[parent] = invert(T)
 

@@ -10,6 +10,8 @@ import ctypes
 import os
 from pathlib import Path
 
+from .errors import BadInput
+
 PROFILE = Path(__file__).with_name('config') / 'fastdds_volcap.xml'
 MULTIHOST_PROFILE = Path(__file__).with_name('config') / 'fastdds_multihost.xml'
 PROFILES = {'single': PROFILE, 'multihost': MULTIHOST_PROFILE}
@@ -25,7 +27,7 @@ def configure(environ=os.environ) -> str | None:
         return None
     choice = environ.get('VOLCAP_TRANSPORT', 'single')
     if choice not in PROFILES:
-        raise ValueError(f'VOLCAP_TRANSPORT must be one of {sorted(PROFILES)}, got {choice!r}')
+        raise BadInput(f'VOLCAP_TRANSPORT must be one of {sorted(PROFILES)}, got {choice!r}')
     environ.setdefault(PROFILE_ENV, str(PROFILES[choice]))
     return environ[PROFILE_ENV]
 

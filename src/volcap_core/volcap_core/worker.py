@@ -8,6 +8,8 @@ import time
 from collections import deque
 from typing import Any, Callable
 
+from .errors import BadInput
+
 
 class DropOldestWorker:
     """Calls ``handle(item)`` on its own thread for each submitted item, in order.
@@ -19,7 +21,7 @@ class DropOldestWorker:
     def __init__(self, handle: Callable[[Any], None], capacity: int, name: str,
                  on_error: Callable[[Any, Exception], None] | None = None, ready: Callable[[], bool] = lambda: True):
         if capacity < 1:
-            raise ValueError(f'capacity must be >= 1, got {capacity}')
+            raise BadInput(f'capacity must be >= 1, got {capacity}')
         self.handle = handle
         self.on_error = on_error
         self.ready = ready

@@ -21,10 +21,11 @@ from tqdm import tqdm
 from volcap_core import topics
 from volcap_core.bag_io import BagWriter
 from volcap_core.conversions import camera_model_to_info, numpy_to_image
+from volcap_core.errors import BadInput
 from volcap_core.rig import Rig, rig_camera_from_k4a
 
 
-class K4AImportError(RuntimeError):
+class K4AImportError(BadInput):
     """The MKV is not a readable Azure Kinect recording."""
 
 

@@ -5,6 +5,7 @@ import struct
 from dataclasses import dataclass
 
 from volcap_core.conversions import cdr_stamp_format
+from volcap_core.errors import BadInput
 from volcap_core.settings import setting
 
 HEADER_FIRST_TYPES = ('sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'sensor_msgs/msg/PointCloud2',
@@ -17,10 +18,10 @@ def parse_remaps(rules: list[str]) -> dict[str, str]:
     out = {}
     for rule in rules:
         if ':=' not in rule:
-            raise ValueError(f'remap rule {rule!r} must look like FROM:=TO')
+            raise BadInput(f'remap rule {rule!r} must look like FROM:=TO')
         src, dst = (part.strip().lstrip('/') for part in rule.split(':=', 1))
         if not src or not dst:
-            raise ValueError(f'remap rule {rule!r} has an empty side')
+            raise BadInput(f'remap rule {rule!r} has an empty side')
         out[src] = dst
     return out
 
@@ -31,7 +32,7 @@ def parse_counts(rules: list[str]) -> dict[str, int]:
     for rule in rules:
         topic, sep, count = rule.rpartition('=')
         if not sep or not topic.strip() or not count.strip().isdigit():
-            raise ValueError(f'subscriber count {rule!r} must look like TOPIC=N')
+            raise BadInput(f'subscriber count {rule!r} must look like TOPIC=N')
         out[topic.strip().lstrip('/')] = int(count)
     return out
 

@@ -13,6 +13,7 @@ from volcap_calib.report import color_figure, color_report, color_summary, poses
 from volcap_calib.run import calibrator_from_bag, load_board
 from volcap_core.calibration import Calibration
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput
 from volcap_core.poses import from_rotvec_t, invert, rotation_angle_deg, to_rotvec_t
 from volcap_studio.session import GroundTruth
 
@@ -73,7 +74,7 @@ def evaluate_calibration(calibration_path: str | Path, bag: str | Path, board_fi
     T_est = {c: cam.T_world_color for c, cam in calibration.cameras.items()}
     missing = [c for c in calibration.cameras if c not in calibrator.models]
     if missing:
-        raise ValueError(f'cameras {missing} never saw the board in {bag}')
+        raise BadInput(f'cameras {missing} never saw the board in {bag}')
     ours = extrinsic_report(T_est, calibrator, T_gt, calibration.reference)
     baseline = sed_baseline(calibrator.observations, calibrator.models, calibration.reference)
     base = extrinsic_report(baseline.T_world_color, calibrator, T_gt, calibration.reference)

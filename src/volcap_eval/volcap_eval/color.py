@@ -69,11 +69,12 @@ from volcap_color.methods import (
 from volcap_color.neural_config import HarmoniseConfig
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.color import ColorModel, delta_e2000, linear_to_lab, srgb_to_lab, srgb_to_linear
+from volcap_core.errors import BadInput
+from volcap_pipeline.replay import capture_views
 from volcap_studio.render import ColorResponse
 from volcap_studio.session import GroundTruth
 
 from .color_figures import write_color_figures
-from .replay import capture_views
 
 METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon', 'paper_diagonal',
            'volcap_chart', 'volcap_chart_free', 'volcap_chart_harmonised')
@@ -258,7 +259,7 @@ def neural_mappings(models_dir: str | Path, views: list[View], cameras: list[str
     harm = load_harmonisation(models_dir)
     missing = [c for c in cameras if c not in harm.mappers]
     if missing:
-        raise ValueError(f'{models_dir} has no networks for {", ".join(missing)}')
+        raise BadInput(f'{models_dir} has no networks for {", ".join(missing)}')
     sizes = {v.name: (v.camera.width, v.camera.height) for v in views}
     luts = {c: RegionLut.load(Path(models_dir) / f'{c}.lut.npz') for c in cameras}
     net = {c: PixelMapping(lambda rgb, xy, c=c: harm.map_colors(c, rgb, xy), sizes[c]) for c in cameras}
@@ -340,12 +341,12 @@ def distorted_frame_views(folder: str | Path, intrinsics: str | Path, count: int
     white balance, crosstalk, gamma, vignetting, noise: the synthetic studio's
     ``ColorResponse.random``) applied to the real image taken as linear radiance. The
     responses are the ground truth: inverted, they give back the real image."""
-    from .fusion import read_frames_folder
+    from volcap_pipeline.rig import read_frames_folder
     depth_model, color_model, frames = read_frames_folder(folder, intrinsics)
     if color_model != depth_model:
-        raise ValueError(f'{folder}: colour and depth must share one pixel grid')
+        raise BadInput(f'{folder}: colour and depth must share one pixel grid')
     if len(frames) < count:
-        raise ValueError(f'{folder} has {len(frames)} frames, {count} asked for')
+        raise BadInput(f'{folder} has {len(frames)} frames, {count} asked for')
     rng = np.random.default_rng(seed)
     views, responses = [], {}
     for k, i in enumerate(np.linspace(0, len(frames) - 1, count).round().astype(int)):

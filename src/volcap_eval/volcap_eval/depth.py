@@ -25,13 +25,13 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from volcap_core.errors import BadInput
 from volcap_core.figures import write_png
 from volcap_core.files import write_json
 from volcap_filter.figures import depth_panels, mask_panels
 from volcap_filter.pipeline import DepthCleaner, DepthFilterConfig
+from volcap_pipeline.replay import cleaned_frame_sets
 from volcap_studio.session import GroundTruth
-
-from .replay import cleaned_frame_sets
 
 METHODS = ('raw', 'paper_horizontal', 'paper_all', 'volcap')
 NEAR_SUBJECT_PX = 3
@@ -44,7 +44,7 @@ def method_config(method: str) -> DepthFilterConfig:
         return DepthFilterConfig(flying_method=method, boundary_px=0)
     if method == 'volcap':
         return DepthFilterConfig()
-    raise ValueError(f'unknown method {method!r}; choose from {METHODS}')
+    raise BadInput(f'unknown method {method!r}; choose from {METHODS}')
 
 
 @dataclass
@@ -97,7 +97,7 @@ def evaluate_depth(bag: str | Path, methods: tuple[str, ...] = METHODS, max_fram
         bar.update()
     bar.close()
     if captures == 0:
-        raise ValueError(f'{bag} has no capture frames with ground truth')
+        raise BadInput(f'{bag} has no capture frames with ground truth')
     report = {'bag': str(bag), 'frames': captures, 'cameras': len(gt.rig.cameras),
               'methods': {m: tallies[m].result() for m in methods}}
     r = report['methods']

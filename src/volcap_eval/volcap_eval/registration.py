@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from volcap_core.errors import BadInput
 from volcap_core.figures import write_png
 from volcap_core.frames import frame_sets
 from volcap_filter.registration import DepthRegistration
@@ -35,7 +36,7 @@ def edge_offsets(rgb: np.ndarray, registered: np.ndarray) -> dict:
     """Median distance of depth edges to colour edges, at no shift and at the best shift."""
     de = depth_edges(registered)
     if de.sum() < 50:
-        raise ValueError('too few depth edges to compare (flat or empty depth image)')
+        raise BadInput('too few depth edges to compare (flat or empty depth image)')
     dist = cv2.distanceTransform((~color_edges(rgb)).astype(np.uint8), cv2.DIST_L2, 5)
     v, u = np.nonzero(de)
     h, w = de.shape
@@ -61,7 +62,7 @@ def check_registration(bag: str | Path, overlay: Path, camera: str | None = None
     name = camera or rig.names[0]
     frame = next((fs.cameras[name] for fs in frame_sets(bag, cameras=[name]) if name in fs.cameras), None)
     if frame is None:
-        raise ValueError(f'{bag} has no complete colour + depth frame of {name}')
+        raise BadInput(f'{bag} has no complete colour + depth frame of {name}')
     c = frame.color_model
     reg = DepthRegistration(frame.depth_model, c, rig.camera(name).T_color_depth, (c.width, c.height))
     registered = reg.register(frame.depth).depth

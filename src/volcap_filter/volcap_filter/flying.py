@@ -35,6 +35,7 @@ import cv2
 import numba
 import numpy as np
 
+from volcap_core.errors import BadInput
 from volcap_core.settings import setting, validate
 
 
@@ -70,7 +71,7 @@ def _paper_eq5(depth_mm, horizontal, threshold):
 def paper_flying_pixels(depth_m: np.ndarray, directions: str = 'all', threshold_mm: float = 0.0) -> np.ndarray:
     """Paper 000 Eq. 5 on a depth image in metres: bool mask of the pixels it removes."""
     if directions not in ('all', 'horizontal'):
-        raise ValueError(f"directions must be 'all' or 'horizontal', got {directions!r}")
+        raise BadInput(f"directions must be 'all' or 'horizontal', got {directions!r}")
     depth_mm = np.ascontiguousarray(depth_m, np.float32) * np.float32(1000.0)
     return _paper_eq5(depth_mm, directions == 'horizontal', float(threshold_mm))
 

@@ -17,6 +17,7 @@ import cv2
 import numba
 import numpy as np
 
+from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write
 from volcap_core.settings import setting, validate
 
@@ -40,9 +41,9 @@ class MaskConfig:
     def validate(self) -> None:
         validate(self)
         if not self.min_range < self.max_range:
-            raise ValueError(f'range gate needs 0 <= min_range < max_range, got {self.min_range}, {self.max_range}')
+            raise BadInput(f'range gate needs 0 <= min_range < max_range, got {self.min_range}, {self.max_range}')
         if not 0.0 < self.shadow_min <= 1.0 <= self.highlight_max:
-            raise ValueError('need 0 < shadow_min <= 1 <= highlight_max')
+            raise BadInput('need 0 < shadow_min <= 1 <= highlight_max')
 
 
 @numba.njit(cache=True)
@@ -86,7 +87,7 @@ class BackgroundModel:
         """Add one background-only frame (colour at mask resolution, registered depth at any)."""
         x = rgb.astype(np.float64)
         if self._sum is not None and x.shape != self._sum.shape:
-            raise ValueError(f'clean-plate frame is {x.shape[1]}x{x.shape[0]}, earlier ones were '
+            raise BadInput(f'clean-plate frame is {x.shape[1]}x{x.shape[0]}, earlier ones were '
                              f'{self._sum.shape[1]}x{self._sum.shape[0]}')
         self._sum = x if self._sum is None else self._sum + x
         self._sum2 = x * x if self._sum2 is None else self._sum2 + x * x
@@ -100,7 +101,7 @@ class BackgroundModel:
     def statistics(self, noise_floor: float) -> tuple[np.ndarray, np.ndarray]:
         """Per-pixel colour mean and 1 / sigma (float32), cached until a frame is added."""
         if self._n == 0:
-            raise ValueError('no clean-plate frames learnt yet')
+            raise BadInput('no clean-plate frames learnt yet')
         if self._stats is None or self._stats[0] != noise_floor:
             mean = self._sum / self._n
             var = np.maximum(self._sum2 / self._n - mean ** 2, 0.0) * (self._n / max(self._n - 1, 1))
@@ -114,7 +115,7 @@ class BackgroundModel:
 
     def save(self, path: str) -> None:
         if self._n == 0:
-            raise ValueError('no clean-plate frames to save')
+            raise BadInput('no clean-plate frames to save')
         depth = self._depth_far if self._depth_far is not None else np.zeros(0, np.float32)
         atomic_write(path, lambda f: np.savez_compressed(f, n=self._n, sum=self._sum, sum2=self._sum2, depth=depth))
 
@@ -126,13 +127,13 @@ class BackgroundModel:
             with np.load(path, allow_pickle=False) as npz:
                 n, total, total2, depth = int(npz['n']), npz['sum'], npz['sum2'], npz['depth']
         except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as e:
-            raise ValueError(f'clean plate {path} is unreadable: {type(e).__name__}: {e}') from e
+            raise BadInput(f'clean plate {path} is unreadable: {type(e).__name__}: {e}') from e
         if n < 1 or total.ndim != 3 or total.shape[2] != 3 or total2.shape != total.shape \
                 or not np.all(np.isfinite(total)) or not np.all(np.isfinite(total2)):
-            raise ValueError(f'clean plate {path}: expected colour sums of shape (H, W, 3) over >= 1 frames, got '
+            raise BadInput(f'clean plate {path}: expected colour sums of shape (H, W, 3) over >= 1 frames, got '
                              f'{total.shape} over {n}')
         if depth.size and (depth.ndim != 2 or not np.all(np.isfinite(depth))):
-            raise ValueError(f'clean plate {path}: expected a finite (H, W) depth, got {depth.shape}')
+            raise BadInput(f'clean plate {path}: expected a finite (H, W) depth, got {depth.shape}')
         model._n, model._sum, model._sum2 = n, total, total2
         model._depth_far = depth if depth.size else None
         return model
@@ -142,7 +143,7 @@ def color_foreground(rgb: np.ndarray, model: BackgroundModel, cfg: MaskConfig) -
     """Pixels whose colour cannot be the learnt background (before clean-up)."""
     mean, inv_sigma = model.statistics(cfg.noise_floor)
     if rgb.shape != mean.shape:
-        raise ValueError(f'colour image is {rgb.shape[1]}x{rgb.shape[0]}, the clean plate is '
+        raise BadInput(f'colour image is {rgb.shape[1]}x{rgb.shape[0]}, the clean plate is '
                          f'{mean.shape[1]}x{mean.shape[0]}')
     out = np.empty(rgb.shape[:2], np.bool_)
     _color_foreground(np.ascontiguousarray(rgb), mean, inv_sigma, cfg.chroma_sigmas, cfg.min_difference,
@@ -156,7 +157,7 @@ def depth_foreground(depth_m: np.ndarray, background_m: np.ndarray | None, cfg: 
     if background_m is None:
         return in_gate
     if background_m.shape != depth_m.shape:
-        raise ValueError('background depth and depth differ in size')
+        raise BadInput('background depth and depth differ in size')
     return in_gate & ((background_m <= 0) | (depth_m < background_m - cfg.depth_margin))
 
 

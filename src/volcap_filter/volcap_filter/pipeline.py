@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from volcap_core.errors import BadInput
 from volcap_core.settings import setting, validate
 
 from .flying import FlyingPixelConfig, fill_lattice_gaps, flying_pixels, paper_flying_pixels
@@ -39,7 +40,7 @@ class DepthFilterConfig:
     def validate(self) -> None:
         validate(self)      # every range, the nested configs' too
         if len(self.chroma_key) != 3:
-            raise ValueError(f'chroma_key must be three values 0-255, got {self.chroma_key}')
+            raise BadInput(f'chroma_key must be three values 0-255, got {self.chroma_key}')
         self.mask.validate()   # its cross-field checks
 
 
@@ -128,10 +129,10 @@ class DepthCleaner:
     def _check(self, color: np.ndarray, depth_m: np.ndarray) -> None:
         c = self.registration.color_model
         if color.shape[:2] != (c.height, c.width):
-            raise ValueError(f'colour image is {color.shape[1]}x{color.shape[0]}, its camera_info says '
+            raise BadInput(f'colour image is {color.shape[1]}x{color.shape[0]}, its camera_info says '
                              f'{c.width}x{c.height}')
         if not np.any(depth_m > 0):
-            raise ValueError('depth image has no valid pixel (all zero or NaN)')
+            raise BadInput('depth image has no valid pixel (all zero or NaN)')
 
     def _flying(self, depth: np.ndarray) -> np.ndarray:
         method = self.cfg.flying_method

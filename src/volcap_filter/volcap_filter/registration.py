@@ -16,6 +16,7 @@ import numba
 import numpy as np
 
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput
 
 
 @dataclass
@@ -137,7 +138,7 @@ class DepthRegistration:
         self.step_abs, self.step_rel = float(step_abs), float(step_rel)
         T = np.asarray(T_color_depth, np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise ValueError('T_color_depth must be a finite 4x4 matrix')
+            raise BadInput('T_color_depth must be a finite 4x4 matrix')
         self.R, self.t = T[:3, :3].copy(), T[:3, 3].copy()
         if registered:   # only resampled: the output pixel of each input pixel centre
             sx, sy = self.output.width / depth.width, self.output.height / depth.height
@@ -179,5 +180,5 @@ class DepthRegistration:
     def _check(self, depth_m: np.ndarray) -> None:
         expected = (self.depth_model.height, self.depth_model.width)
         if depth_m.shape != expected:
-            raise ValueError(f'depth image is {depth_m.shape[1]}x{depth_m.shape[0]}, its camera_info says '
+            raise BadInput(f'depth image is {depth_m.shape[1]}x{depth_m.shape[0]}, its camera_info says '
                              f'{expected[1]}x{expected[0]}')

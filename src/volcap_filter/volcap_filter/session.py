@@ -8,7 +8,7 @@ must still be learnt, not lost) or skipped (held too long, or unusable). The cle
 whenever the camera models, the registration mode or the extrinsic change. Native depth needs
 the depth-to-colour extrinsic: from the rig (``/volcap/rig`` or a rig file) or, on a rig of
 vendor drivers, from their ``/tf_static``. The ``depth_filter`` node
-and the offline replay (``volcap_eval.replay``) both drive this class, so they decide alike.
+and the per-camera pipeline (``volcap_pipeline.camera``, which the offline replay drives) both drive this class, so they decide alike.
 """
 from __future__ import annotations
 

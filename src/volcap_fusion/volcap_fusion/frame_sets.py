@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from volcap_core import topics
+from volcap_core.errors import BadInput
 from volcap_core.settings import setting
 
 from .tsdf import CameraView
@@ -77,7 +78,7 @@ def fused_cameras(calibrated: list[str], wanted: list[str]) -> list[str]:
         return list(calibrated)
     absent = [c for c in wanted if c not in calibrated]
     if absent:
-        raise ValueError(f'cameras {absent} are not in the calibration')
+        raise BadInput(f'cameras {absent} are not in the calibration')
     return list(wanted)
 
 

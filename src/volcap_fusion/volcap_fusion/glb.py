@@ -35,6 +35,7 @@ import meshoptimizer
 import numpy as np
 
 from volcap_core.color import linear_to_srgb, srgb_to_linear
+from volcap_core.errors import BadInput
 from volcap_core.settings import setting, validate
 
 from .tsdf import FusedModel
@@ -214,7 +215,7 @@ def encode(model: FusedModel, cfg: EncodeConfig | None = None, stamp_ns: int | N
     t1 = time.perf_counter()
     extras = frame_extras(stamp_ns, index, frame)
     if not len(mesh.triangles):
-        raise ValueError('an empty mesh has no glTF form (an accessor counts at least one element)')
+        raise BadInput('an empty mesh has no glTF form (an accessor counts at least one element)')
     writer = {'meshopt': _meshopt_glb, 'draco': _draco_glb, 'raw': _raw_glb}[cfg.encoding]
     data = writer(mesh, cfg, extras)
     t2 = time.perf_counter()
@@ -249,7 +250,7 @@ def _meshopt_glb(mesh: FusedModel, cfg: EncodeConfig, extras: dict) -> bytes:
     origin = v.min(axis=0)
     steps = np.round((v - origin) / cfg.position_step)
     if steps.max() > 65535:
-        raise ValueError(f'the mesh spans {np.ptp(v, axis=0).max():.2f} m: more than 65535 steps of '
+        raise BadInput(f'the mesh spans {np.ptp(v, axis=0).max():.2f} m: more than 65535 steps of '
                          f'{cfg.position_step * 1000:g} mm; raise position_step')
     n = len(v)
     positions = np.zeros((n, 4), np.uint16)        # 8-byte stride: vertex attributes are 4-byte aligned
@@ -324,13 +325,13 @@ def _draco_glb(mesh: FusedModel, cfg: EncodeConfig, extras: dict) -> bytes:
 def unpack_glb(data: bytes) -> tuple[dict, bytes]:
     """(glTF JSON, binary chunk) of a GLB; ValueError for anything else."""
     if len(data) < 20:
-        raise ValueError('not a GLB: too short')
+        raise BadInput('not a GLB: too short')
     magic, version, length = struct.unpack_from('<III', data)
     if magic != GLB_MAGIC or version != 2 or length > len(data):
-        raise ValueError('not a glTF 2.0 binary (bad header or truncated)')
+        raise BadInput('not a glTF 2.0 binary (bad header or truncated)')
     json_len, kind = struct.unpack_from('<II', data, 12)
     if kind != JSON_CHUNK:
-        raise ValueError('GLB without a JSON chunk')
+        raise BadInput('GLB without a JSON chunk')
     doc = json.loads(data[20:20 + json_len])
     binary = b''
     at = 20 + json_len

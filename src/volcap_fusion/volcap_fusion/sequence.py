@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from volcap_core.errors import BadInput
 from volcap_core.files import FILE_MODE, append_line, atomic_write, publish, write_failure, write_json
 from volcap_core.poses import matrix_from_list, matrix_to_list
 
@@ -51,7 +52,7 @@ def binary_ply_size(path: str | Path, list_length: int = 3) -> int:
         while not header.endswith(b'end_header\n'):
             line = f.readline()
             if not line:
-                raise ValueError(f'{path}: no PLY header')
+                raise BadInput(f'{path}: no PLY header')
             header += line
     size, count = len(header), 0
     for line in header.decode('ascii', 'replace').splitlines():
@@ -99,7 +100,7 @@ def write_ply(path: str | Path, model: FusedModel) -> Path:
 def read_ply(path: str | Path) -> FusedModel:
     mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.vertices) == 0:
-        raise ValueError(f'{path}: no mesh')
+        raise BadInput(f'{path}: no mesh')
     colors = colors_to_uint8(np.asarray(mesh.vertex_colors)) if mesh.has_vertex_colors() else \
         np.zeros((len(mesh.vertices), 3), np.uint8)
     return FusedModel(np.asarray(mesh.vertices, np.float32), colors, np.asarray(mesh.triangles, np.int32))
@@ -114,7 +115,7 @@ class SequenceWriter:
                  encoding: EncodeConfig | None = None, voxel_size: float | None = None):
         unknown = set(formats) - {'ply', 'glb'}
         if unknown or not formats:
-            raise ValueError(f'sequence formats must be ply and/or glb, got {formats}')
+            raise BadInput(f'sequence formats must be ply and/or glb, got {formats}')
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.formats = formats

@@ -22,6 +22,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput
 from volcap_core.poses import convergence_point, invert, transform_points
 from volcap_core.settings import setting, validate
 
@@ -63,13 +64,13 @@ class FusionConfig:
         validate(self)
         size = np.asarray(self.box_size, float)
         if size.shape != (3,) or not np.all(size > 0):
-            raise ValueError(f'box_size must be 3 positive edge lengths, got {self.box_size}')
+            raise BadInput(f'box_size must be 3 positive edge lengths, got {self.box_size}')
         if self.box_center is not None and (np.shape(self.box_center) != (3,)
                                             or not np.all(np.isfinite(self.box_center))):
-            raise ValueError(f'box_center must be 3 finite values or None, got {self.box_center}')
+            raise BadInput(f'box_center must be 3 finite values or None, got {self.box_center}')
         device = o3c.Device(pick_device(self.device))
         if device.get_type() == o3c.Device.CUDA and not o3d.core.cuda.is_available():
-            raise ValueError(f'device {self.device}: this Open3D has no CUDA device')
+            raise BadInput(f'device {self.device}: this Open3D has no CUDA device')
 
 
 def pick_device(requested: str = 'auto') -> str:
@@ -92,17 +93,17 @@ class CameraView:
 
     def __post_init__(self):
         if self.depth_mm.dtype != np.uint16 or self.depth_mm.ndim != 2:
-            raise ValueError(f'{self.name}: depth must be (h, w) uint16 millimetres, got {self.depth_mm.dtype} '
+            raise BadInput(f'{self.name}: depth must be (h, w) uint16 millimetres, got {self.depth_mm.dtype} '
                              f'{self.depth_mm.shape}')
         if self.depth_mm.shape != (self.depth_model.height, self.depth_model.width):
-            raise ValueError(f'{self.name}: depth is {self.depth_mm.shape[1]}x{self.depth_mm.shape[0]} but its '
+            raise BadInput(f'{self.name}: depth is {self.depth_mm.shape[1]}x{self.depth_mm.shape[0]} but its '
                              f'camera_info says {self.depth_model.width}x{self.depth_model.height}')
         if self.color.dtype != np.uint8 or self.color.shape != (self.color_model.height, self.color_model.width, 3):
-            raise ValueError(f'{self.name}: colour must be {self.color_model.width}x{self.color_model.height} RGB '
+            raise BadInput(f'{self.name}: colour must be {self.color_model.width}x{self.color_model.height} RGB '
                              f'uint8, got {self.color.dtype} {self.color.shape}')
         T = np.asarray(self.T_world_camera, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise ValueError(f'{self.name}: pose must be a finite 4x4 matrix')
+            raise BadInput(f'{self.name}: pose must be a finite 4x4 matrix')
 
 
 @dataclass
@@ -408,7 +409,7 @@ class TsdfFusion:
         """One time step: a fresh volume, every view integrated, the mesh extracted (in the frame
         of the views' poses; ``on_floor``: see ``capture_box``)."""
         if not views:
-            raise ValueError('no camera to fuse')
+            raise BadInput('no camera to fuse')
         t0 = time.perf_counter()
         *box, source = self.capture_volume(views, on_floor)
         left_out = depth_left_out(views, box, self.cfg.depth_max)

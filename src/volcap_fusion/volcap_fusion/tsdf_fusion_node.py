@@ -50,6 +50,7 @@ from volcap_core.conversions import (
     points_to_pointcloud2,
     stamp_to_ns,
 )
+from volcap_core.errors import BadInput
 from volcap_core.health import silent_cameras
 from volcap_core.poses import invert
 from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node
@@ -262,7 +263,7 @@ class TsdfFusionNode(Node):
     def _view(self, cam: str, depth_msg: Image, color_msg: Image, T_frame_color: np.ndarray) -> CameraView:
         infos = self.infos.get((cam, 'depth')), self.infos.get((cam, 'color'))
         if None in infos:
-            raise ValueError('no camera_info yet')
+            raise BadInput('no camera_info yet')
         if depth_msg.encoding == '16UC1':
             depth_mm = image_to_numpy(depth_msg)
         else:   # 32FC1 metres (NaN = no depth), or a clear error for anything else

@@ -13,6 +13,7 @@ import open3d as o3d
 
 from volcap_calib.board import BoardConfig
 from volcap_core.color import srgb_to_linear
+from volcap_core.errors import BadInput
 from volcap_core.poses import make_transform
 from volcap_core.sampling import sample_bilinear
 
@@ -55,7 +56,7 @@ class Material:
             # Front face (z <= 0 in board coordinates) carries the artwork, back and edges grey.
             uv = (p[:, :2] - self.texture_origin) * self.px_per_m - 0.5
             return np.where(p[:, 2:3] <= 1e-4, sample_bilinear(self.texture, uv), lin[0])
-        raise ValueError(f'unknown material kind {self.kind!r}')
+        raise BadInput(f'unknown material kind {self.kind!r}')
 
 
 @dataclass
@@ -137,7 +138,7 @@ def bunny_on_pedestal(bunny_path: str) -> SceneObject:
     """The Stanford bunny, scaled to about 0.45 m, glazed, on a matte 0.8 m pedestal."""
     bunny = o3d.io.read_triangle_mesh(bunny_path)
     if len(bunny.triangles) == 0:
-        raise ValueError(f'could not read a mesh from {bunny_path}')
+        raise BadInput(f'could not read a mesh from {bunny_path}')
     # The scan is y-up: turn it z-up, scale, stand it on the pedestal.
     bunny.rotate(o3d.geometry.get_rotation_matrix_from_xyz((np.pi / 2, 0, 0)), center=(0, 0, 0))
     bb = bunny.get_axis_aligned_bounding_box()

@@ -27,6 +27,7 @@ from volcap_calib.board import BoardConfig
 from volcap_core import topics
 from volcap_core.bag_io import BagWriter
 from volcap_core.conversions import camera_model_to_info, numpy_to_image
+from volcap_core.errors import BadInput
 from volcap_core.poses import invert, matrix_from_list, matrix_to_list
 from volcap_core.rig import Rig
 from volcap_core.topics import CAPTURE
@@ -206,6 +207,6 @@ class GroundTruth:
         """The subject mesh in the world frame at capture frame ``index``."""
         frame = self.frames[index]
         if 'T_world_subject' not in frame:
-            raise ValueError(f'frame {index} ({frame["phase"]}) has no subject')
+            raise BadInput(f'frame {index} ({frame["phase"]}) has no subject')
         mesh = o3d.io.read_triangle_mesh(str(self.dir / 'subject.ply'))
         return mesh.transform(matrix_from_list(frame['T_world_subject']))

@@ -15,6 +15,7 @@ import numpy as np
 
 from volcap_calib.board import BoardConfig
 from volcap_core.camera import CameraModel
+from volcap_core.errors import BadInput
 from volcap_core.poses import look_at, make_transform, perturb
 from volcap_core.rig import Rig, RigCamera, rig_camera_from_k4a
 from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, CLEAN_PLATE, camera_names
@@ -46,13 +47,13 @@ class SynthConfig:
 
     def __post_init__(self):
         if self.cameras < 1:
-            raise ValueError('need at least one camera')
+            raise BadInput('need at least one camera')
         if min(self.frames, self.board_poses, self.background_frames) < 0:
-            raise ValueError('frame counts must be >= 0')
+            raise BadInput('frame counts must be >= 0')
         if self.board_layout not in BOARD_LAYOUTS:
-            raise ValueError(f'unknown board layout {self.board_layout!r}; choose from {BOARD_LAYOUTS}')
+            raise BadInput(f'unknown board layout {self.board_layout!r}; choose from {BOARD_LAYOUTS}')
         if self.scene not in SCENES:
-            raise ValueError(f'unknown scene {self.scene!r}; choose from {SCENES}')
+            raise BadInput(f'unknown scene {self.scene!r}; choose from {SCENES}')
         needed = [('Azure Kinect calibration', self.k4a_calibration)]
         if self.scene == 'bunny':
             needed.append(('bunny mesh', self.bunny_mesh))

@@ -20,6 +20,7 @@ from std_msgs.msg import String
 from volcap_calib.board import BoardConfig
 from volcap_core import qos, topics
 from volcap_core.conversions import camera_model_to_info, ns_to_stamp, numpy_to_image
+from volcap_core.errors import BadInput
 from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.settings import setting
 from volcap_studio.studio import (
@@ -68,7 +69,7 @@ class SyntheticRig(Node):
         rig, poses = make_rig(cfg, rng)
         plans = session_plan(cfg, board, rng)
         if not plans:
-            raise ValueError('nothing to render: frames, board_poses and background_frames are all 0')
+            raise BadInput('nothing to render: frames, board_poses and background_frames are all 0')
         renderer = StudioRenderer(cfg, rig, poses, board, rng)
         self.get_logger().info(f'rendering {len(plans)} frame sets for {cfg.cameras} cameras...')
         self.frames = []

@@ -33,6 +33,7 @@ from volcap_core.conversions import (
     rgb_to_compressed,
     transforms_to_tf_message,
 )
+from volcap_core.errors import BadInput
 from volcap_core.frames import frame_sets, read_rig
 from volcap_core.poses import invert, make_transform
 from volcap_core.rig import RigCamera
@@ -48,7 +49,7 @@ def frame_ids(layout: str, name: str) -> tuple[str, str]:
         return f'{name}_rgb_camera_link', f'{name}_depth_camera_link'
     if layout == 'orbbec':
         return f'{name}_color_optical_frame', f'{name}_depth_optical_frame'
-    raise ValueError(f'unknown driver layout {layout!r}; known: {", ".join(LAYOUTS)}')
+    raise BadInput(f'unknown driver layout {layout!r}; known: {", ".join(LAYOUTS)}')
 
 
 def topic_names(layout: str, name: str, registered: bool, color_format: str) -> dict[str, str]:
@@ -117,7 +118,7 @@ def frame_messages(layout: str, name: str, cam: RigCamera, color_rgb: np.ndarray
     """(topic, message) of one capture in the driver's order (depth, then colour). The colour is
     stamped ``color_delay_ns`` after the depth (real drivers stamp each at its own exposure)."""
     if color_format not in ('raw', 'jpeg'):
-        raise ValueError(f"color_format must be 'raw' or 'jpeg', got {color_format!r}")
+        raise BadInput(f"color_format must be 'raw' or 'jpeg', got {color_format!r}")
     color_frame, depth_frame = frame_ids(layout, name)
     names = topic_names(layout, name, registered, color_format)
     color_stamp = stamp_ns + color_delay_ns

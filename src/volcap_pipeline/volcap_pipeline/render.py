@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from volcap_core.errors import BadInput
 from volcap_core.figures import write_png
 from volcap_fusion.tsdf import FusedModel
 
@@ -101,5 +102,5 @@ def render_rows(models: list[tuple[str, FusedModel]], poses: list[np.ndarray], p
     rows = [turntable(m, orbit_views(m if frame_on is None else frame_on, up), label=label)
             for label, m in models if len(m.triangles)]
     if not rows:
-        raise ValueError('nothing to render: every mesh is empty')
+        raise BadInput('nothing to render: every mesh is empty')
     return write_png(path, np.vstack(rows))
