@@ -56,15 +56,21 @@ def test_live_graph_keeps_delivering_whole_meshes(live_bag, live_calibration):
 
 
 @pytest.mark.timeout(300)
-def test_slow_fusion_drops_are_counted(live_bag, live_calibration):
-    """2 mm voxels with every frame set admitted (admission fixed at 1): the fusion cannot keep
-    up, drops the oldest waiting sets and counts them; meshes still come."""
+def test_an_overloaded_fusion_stays_live_and_says_so(live_bag, live_calibration):
+    """2 mm voxels with every frame set admitted (admission fixed at 1): on this machine more than
+    the fusion can do, on a GPU machine perhaps not. Whatever the machine, the graph stays live
+    (meshes in the last third of the run, where a stalled graph gives none), and whatever the
+    fusion drops is reported as trouble. How much it drops is bench/live.py's to measure; the
+    drop accounting itself is test_worker's."""
     result = run_live(LiveConfig(live_calibration, bag=live_bag, voxel_size=0.002, depth_scale=1.0, every=1,
                                  rate=0.5, seconds=24, warmup_s=8, probe=True))
     assert all(c == 0 for c in result['node_exit_codes'].values()), result['node_exit_codes']
     summaries = after_warmup(result, 8)
     assert {s['admit_every'] for s in summaries} == {1}
-    fusion_drops = sum(s['drops_per_s']['tsdf_fusion']['dropped'] for s in summaries)
-    assert fusion_drops > 0, summaries[-3:]
-    assert any(s['trouble'] for s in summaries)
-    assert len(result['meshes']) >= 1
+    last_third = result['summaries'][-1]['t_s'] * 2 / 3
+    assert sum(s['meshes_per_s'] for s in result['summaries'] if s['t_s'] >= last_third) > 0, \
+        result['summaries'][-3:]
+    assert result['meshes']
+    for s in summaries:
+        if s['drops_per_s']['tsdf_fusion']['dropped'] > 0:
+            assert s['trouble'], s

@@ -407,7 +407,8 @@ def test_cli_calibrate_and_eval(calib_bag, calib_bag_blind_camera, tmp_path):
     assert 'no capture frame set 0' in report['icp']['skipped']   # board-only bag: board poses kept
     assert (tmp_path / 'calibration_poses.png').exists() and (tmp_path / 'calibration_colour.png').exists()
     before = out.read_text()
-    assert main(['calibrate', str(calib_bag_blind_camera), '--out', str(out), '--quiet']) == 1
+    # A camera the board never reached: the user's to fix (exit 2, one line), the old file kept.
+    assert main(['calibrate', str(calib_bag_blind_camera), '--out', str(out), '--quiet']) == 2
     assert out.read_text() == before
     result = tmp_path / 'eval.json'
     assert main(['eval', 'calib', str(out), str(calib_bag), '--json', str(result), '--quiet']) == 0

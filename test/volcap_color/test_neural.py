@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from volcap_color.apply import ImageCorrector, RegionLut
+from volcap_color.config import HarmoniseConfig
 from volcap_color.correspondence import View, match_pair
 from volcap_color.neural import CaptureMapper, bake_region_lut, export_error, harmonise, load_harmonisation, train
-from volcap_color.neural_config import HarmoniseConfig
 from volcap_core.camera import CameraModel
 from volcap_core.color import linear_to_srgb
 from volcap_core.poses import look_at

@@ -92,7 +92,7 @@ def test_harmonise_and_eval_neural_end_to_end(studio_bag, tmp_path, gt_calibrati
     assert main(['harmonise', str(studio_bag), '--calibration', str(calibration), '--out', str(models),
                  '--frames', '2', '--points', '20000', '--field-epochs', '3', '--field-batch', '2000',
                  '--field-lr', '1e-3', '--mapper-points', '3000', '--mapper-epochs', '3', '--mapper-lr', '1e-3',
-                 '--lut-colours', '9', '--lut-grid', '4x3', '--reference', 'cam1', '--quiet']) == 0
+                 '--lut-colours', '9', '--lut-grid', '4', '3', '--reference', 'cam1', '--quiet']) == 0
     manifest = json.loads((models / 'manifest.json').read_text())
     cams = GroundTruth(studio_bag).rig.names
     assert manifest['frame_sets'] == {'read': 2, 'trained': [0], 'checked': [1], 'checked_held_out': True}
@@ -109,8 +109,8 @@ def test_harmonise_and_eval_neural_end_to_end(studio_bag, tmp_path, gt_calibrati
         s = report['methods'][name]
         assert s['pairs'] >= 1 and np.isfinite(s['de2000_mean']) and s['psnr_mean'] > 10
     assert main(['harmonise', str(studio_bag), '--calibration', str(calibration), '--out', str(models),
-                 '--lut-grid', '9', '--quiet']) == 2
-    assert '--lut-grid is NXxNY' in capsys.readouterr().err
+                 '--lut-grid', '1', '5', '--quiet']) == 2     # the setting's own range
+    assert 'lut_grid must be within 2 - 64' in capsys.readouterr().err
 
 
 def test_truth_and_chroma_see_what_pairwise_scores_cannot():

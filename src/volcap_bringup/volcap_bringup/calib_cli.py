@@ -1,6 +1,10 @@
 """``volcap board`` and ``volcap calibrate`` (the calibration evaluations are in ``eval_cli``)."""
 from __future__ import annotations
 
+from volcap_calib.config import CalibrateConfig
+from volcap_core.errors import WeakCalibration
+from volcap_core.settings import add_arguments, config_from_args
+
 
 def cmd_board(args) -> int:
     from volcap_calib.board import write_board
@@ -15,19 +19,18 @@ def cmd_board(args) -> int:
 
 def cmd_calibrate(args) -> int:
     from volcap_calib.extrinsics import CalibrationError
-    from volcap_calib.run import CalibrateConfig, run
-    cfg = CalibrateConfig(args.bag, args.out, args.report, args.board, args.reference, not args.no_depth,
-                          args.color_method or None, args.all_frames, args.icp, args.icp_frame, not args.quiet)
+    from volcap_calib.run import run
+    cfg = config_from_args(CalibrateConfig, args, bag=args.bag, out=args.out, report_dir=args.report,
+                           board_file=args.board, progress=not args.quiet)
     try:
         report = run(cfg)
     except CalibrationError as e:
-        print(f'calibration failed, {args.out} left as it was: {e}')
-        return 1
+        raise CalibrationError(f'calibration failed, {args.out} left as it was: {e}') from e
     print('\n'.join(report.lines()))
     if report.outcome.weak and not args.accept_weak:
-        print(f'{args.out} written but flagged weak (exit 3): show the board as advised and calibrate again, '
-              'or pass --accept-weak to use it as it is')
-        return 3
+        print(f'{args.out} written but flagged weak (exit {WeakCalibration.exit_code}): show the board as advised and '
+              'calibrate again, or pass --accept-weak to use it as it is')
+        return WeakCalibration.exit_code
     return 0
 
 
@@ -43,15 +46,10 @@ def add_parsers(sub) -> None:
     c.add_argument('--out', default='calibration.yaml')
     c.add_argument('--report', help='folder for the report JSON and PNGs (default: beside --out)')
     c.add_argument('--board', help='board YAML (default: the volcap board)')
-    c.add_argument('--reference', default=None, help='camera whose colour frame is the world (default: the first)')
-    c.add_argument('--color-method', '--colour-method', default='', help='force a colour model instead of the leave-one-out choice')
-    c.add_argument('--no-depth', action='store_true', help='reprojection only (no depth-to-plane residuals)')
-    c.add_argument('--all-frames', action='store_true', help='use every frame set, not only the calibration phase')
-    c.add_argument('--icp', action='store_true',
-                   help='refine the poses by ICP of the subject\'s depth in a capture frame set of the bag')
-    c.add_argument('--icp-frame', type=int, default=0, help='which capture frame set ICP uses (default: the first)')
+    add_arguments(c, CalibrateConfig)
     c.add_argument('--accept-weak', action='store_true',
-                   help='exit 0 even when a camera\'s predicted pose error exceeds 0.1 deg / 2 mm')
+                   help='exit 0 even when a camera is weak (its predicted pose error, times --weak-margin, beyond '
+                        '--max-rot-err-deg / --max-trans-err-mm)')
     c.add_argument('--quiet', action='store_true')
     c.set_defaults(func=cmd_calibrate)
 

@@ -27,17 +27,15 @@ import sys
 import time
 
 from volcap_core.errors import VolcapError
+from volcap_core.settings import add_arguments, config_from_args
 
 from . import calib_cli, color_cli, demo_cli, eval_cli, fusion_cli, rig_cli
 
 
 def cmd_synth(args) -> int:
+    from volcap_studio.config import SynthConfig
     from volcap_studio.session import synthesize
-    from volcap_studio.studio import SynthConfig
-    cfg = SynthConfig(cameras=args.cameras, frames=args.frames, board_poses=args.board_poses,
-                      board_layout=args.board_layout, background_frames=args.background_frames, scene=args.scene,
-                      seed=args.seed, fps=args.fps,
-                      **({'k4a_calibration': args.k4a_calibration} if args.k4a_calibration else {}))
+    cfg = config_from_args(SynthConfig, args)
     t0 = time.monotonic()
     summary = synthesize(args.out, cfg, progress=not args.quiet, overwrite=args.overwrite)
     mb = summary.bag_bytes / 1e6
@@ -89,16 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser('synth', help='render a synthetic studio session to a bag with ground truth')
     s.add_argument('--out', required=True, help='bag directory to write')
-    s.add_argument('--cameras', type=int, default=8)
-    s.add_argument('--frames', type=int, default=10, help='capture frames of the subject')
-    s.add_argument('--board-poses', type=int, default=12, help='calibration board poses')
-    s.add_argument('--board-layout', default='sweep', choices=('sweep', 'pairs'),
-                   help='sweep: the board turned through every direction; pairs: held between neighbouring stands')
-    s.add_argument('--background-frames', type=int, default=3, help='clean-plate frames (no subject)')
-    s.add_argument('--scene', default='person', choices=('person', 'bunny'))
-    s.add_argument('--seed', type=int, default=0)
-    s.add_argument('--fps', type=float, default=30.0)
-    s.add_argument('--k4a-calibration', default='', help='factory calibration JSON the rig is modelled on')
+    from volcap_studio.config import SynthConfig
+    add_arguments(s, SynthConfig, ['cameras', 'frames', 'board_poses', 'board_layout', 'background_frames', 'scene',
+                                   'seed', 'fps', 'k4a_calibration'])
     s.add_argument('--overwrite', action='store_true')
     s.add_argument('--quiet', action='store_true')
     s.set_defaults(func=cmd_synth)

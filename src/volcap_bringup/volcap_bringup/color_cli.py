@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import time
 
+from volcap_color.config import ColorFitConfig
 from volcap_core.errors import BadInput
+from volcap_core.settings import add_arguments, config_from_args
 
 
 def _correspondence(args):
@@ -18,32 +20,24 @@ def cmd_color_fit(args) -> int:
     from volcap_color.correspondence import cameras_in
     from volcap_core.calibration import Calibration
     from volcap_pipeline.replay import capture_views
+    cfg = config_from_args(ColorFitConfig, args, correspondence=_correspondence(args))
     calibration = Calibration.load(args.calibration)
     sets = capture_views(args.bag, calibration, args.frames, not args.quiet)
     anchor = None
-    if args.reference == 'chart':
+    if cfg.reference == 'chart':
         anchor, why = chart_samples(args.bag, load_board(args.board), cameras_in(sets, calibration), not args.quiet)
         if anchor is None:
             raise BadInput(f'--reference chart needs the bag\'s board views: {why}')
-    cfg = fit.ColorFitConfig(model=args.model, reference=args.reference, correspondence=_correspondence(args))
     report = fit.run(cfg, sets, calibration, anchor, source_bag=str(args.bag))
     report.calibration.save(args.out)
     print(f'{report.line()}; wrote {args.out}')
     return 0
 
 
-def harmonise_config(args):
-    from volcap_color.neural_config import HarmoniseConfig
-    try:
-        nx, ny = (int(v) for v in args.lut_grid.lower().split('x'))
-    except ValueError:
-        raise BadInput(f'--lut-grid is NXxNY, for example 9x5, not {args.lut_grid!r}') from None
-    keys = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points', 'mapper_epochs',
-            'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference', 'lut_colors', 'seed',
-            'device', 'precision')
-    cfg = HarmoniseConfig(**{k: getattr(args, k) for k in keys}, lut_grid=(nx, ny))
-    cfg.validate()
-    return cfg
+def harmonise_config(args, **fixed):
+    """The training settings given on the command line (``harmonise_arguments``)."""
+    from volcap_color.config import HarmoniseConfig
+    return config_from_args(HarmoniseConfig, args, **fixed)
 
 
 def cmd_harmonise(args) -> int:
@@ -62,33 +56,18 @@ def cmd_harmonise(args) -> int:
     return 0
 
 
+# The training settings `volcap harmonise` and `eval color-frames --harmonise` take; the others
+# (network sizes, encodings) stay the paper's and are set in code only.
+HARMONISE_OPTIONS = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points',
+                     'mapper_epochs', 'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference',
+                     'lut_colors', 'lut_grid', 'seed', 'device', 'precision')
+
+
 def harmonise_arguments(h, seed: bool = True) -> None:
-    """The training settings of ``volcap harmonise`` (HarmoniseConfig), shared by ``eval color-frames``
-    (whose own ``--seed`` seeds the training too: ``seed=False``)."""
-    from volcap_color.neural_config import HarmoniseConfig
-    d = HarmoniseConfig()
-    h.add_argument('--points', type=int, default=d.points, help='surface samples for E')
-    h.add_argument('--field-epochs', type=int, default=d.field_epochs)
-    h.add_argument('--field-batch', type=int, default=d.field_batch)
-    h.add_argument('--field-lr', type=float, default=d.field_lr)
-    h.add_argument('--field-lr-final', type=float, default=d.field_lr_final,
-                   help='decay the learning rate exponentially to this by the last epoch (default: constant)')
-    h.add_argument('--mapper-points', type=int, default=d.mapper_points, help='pixels per camera for its D')
-    h.add_argument('--mapper-epochs', type=int, default=d.mapper_epochs)
-    h.add_argument('--mapper-batch', type=int, default=d.mapper_batch)
-    h.add_argument('--mapper-lr', type=float, default=d.mapper_lr)
-    h.add_argument('--mapper-lr-final', type=float, default=d.mapper_lr_final)
-    h.add_argument('--background', type=float, default=d.background,
-                   help='pixels without a surface point added to each D, per pixel with one, aimed at the camera\'s '
-                        'affine map onto the reference (0: the paper, D sees the subject only)')
-    h.add_argument('--reference', default=d.reference, help='camera whose colours D reproduces, or mean (E '
-                                                            'averaged over every camera)')
-    h.add_argument('--lut-colors', '--lut-colours', type=int, default=d.lut_colors, help='live form: colour nodes per axis')
-    h.add_argument('--lut-grid', default='x'.join(map(str, d.lut_grid)), help='live form: image nodes, NXxNY')
-    if seed:
-        h.add_argument('--seed', type=int, default=d.seed)
-    h.add_argument('--device', choices=('auto', 'cpu', 'cuda'), default=d.device)
-    h.add_argument('--precision', choices=('auto', 'bf16', 'fp32'), default=d.precision)
+    """The training settings of ``volcap harmonise`` (HarmoniseConfig's own declarations), shared
+    by ``eval color-frames`` (whose own ``--seed`` seeds the training too: ``seed=False``)."""
+    from volcap_color.config import HarmoniseConfig
+    add_arguments(h, HarmoniseConfig, HARMONISE_OPTIONS, exclude=() if seed else ('seed',))
 
 
 def common_arguments(p) -> None:
@@ -106,11 +85,7 @@ def add_parsers(sub) -> None:
     f = sub.add_parser('color-fit', aliases=['colour-fit'], help='per-camera colour models from correspondences between the cameras')
     common_arguments(f)
     f.add_argument('--out', required=True, help='calibration.yaml to write (the input with new colour models)')
-    f.add_argument('--model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'),
-                   help='auto: the simplest model that fits without hurting dark pixels (none for a consistent rig)')
-    f.add_argument('--reference', default='mean',
-                   help='mean (no camera favoured), chart (on top of the calibration\'s chart models, anchored to '
-                        'the bag\'s board views) or a camera name')
+    add_arguments(f, ColorFitConfig, ['model', 'reference'])
     f.set_defaults(func=cmd_color_fit)
 
     h = sub.add_parser('harmonise', help='train paper 001\'s colour field E and per-camera networks D (torch), '

@@ -19,8 +19,8 @@ def cmd_demo(args) -> int:
     from volcap_calib.run import CalibrateConfig
     from volcap_calib.run import run as calibrate
     from volcap_color import neural
+    from volcap_color.config import HarmoniseConfig
     from volcap_color.correspondence import cameras_in
-    from volcap_color.neural_config import HarmoniseConfig
     from volcap_core.bag_io import BagReader
     from volcap_core.calibration import Calibration
     from volcap_core.files import write_json

@@ -9,6 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from volcap_core.files import write_json
+from volcap_core.settings import add_arguments, config_from_args
+from volcap_eval.config import ColorEvalConfig
 
 from .color_cli import _correspondence, common_arguments, harmonise_arguments, harmonise_config
 
@@ -71,20 +73,20 @@ def _print_report(report: dict, args) -> int:
 
 
 def cmd_eval_color(args) -> int:
-    from volcap_eval.color import ColorEvalConfig, run
-    report = run(args.bag, args.calibration, ColorEvalConfig(frames=args.frames, correspondence=_correspondence(args),
-                                                             chart_free_model=args.chart_free_model),
+    from volcap_eval.color import run
+    cfg = config_from_args(ColorEvalConfig, args, frames=args.frames, correspondence=_correspondence(args))
+    report = run(args.bag, args.calibration, cfg,
                  board_file=args.board, chart=not args.no_chart, neural=args.neural, figures=args.figures,
                  progress=not args.quiet)
     return _print_report(report, args)
 
 
 def cmd_eval_color_frames(args) -> int:
-    from volcap_eval.color import ColorEvalConfig, evaluate_frames_color
+    from volcap_eval.color import evaluate_frames_color
     from volcap_eval.color_figures import write_color_figures
-    harmonise = (args.harmonise, harmonise_config(args)) if args.harmonise else None
+    harmonise = (args.harmonise, harmonise_config(args, seed=args.seed)) if args.harmonise else None
     report, extras = evaluate_frames_color(args.folder, args.intrinsics, args.views, args.seed,
-                                           ColorEvalConfig(chart_free_model=args.chart_free_model), not args.quiet,
+                                           config_from_args(ColorEvalConfig, args), not args.quiet,
                                            harmonise)
     if args.figures:
         report['figures'] = [str(p) for p in write_color_figures(args.figures, report, extras['views'],
@@ -145,8 +147,7 @@ def add_parsers(esub) -> None:
     e.add_argument('--json', help='write the report here')
     e.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
     e.add_argument('--no-chart', action='store_true', help='leave out the chart methods and table')
-    e.add_argument('--chart-free-model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'),
-                   help='model family of volcap_chart_free (auto: chosen per rig on held-out correspondences)')
+    add_arguments(e, ColorEvalConfig, ['chart_free_model'])
     e.add_argument('--neural', help='a volcap harmonise output folder: score its networks (neural) and live '
                                     'form (neural_live) too')
     e.set_defaults(func=cmd_eval_color)
@@ -158,7 +159,7 @@ def add_parsers(esub) -> None:
     r.add_argument('--intrinsics', help='3x3 intrinsic matrix (default FOLDER/intrinsics.K.txt)')
     r.add_argument('--views', type=int, default=8, help='frames used as the cameras of one frame set')
     r.add_argument('--seed', type=int, default=0, help='seed of the colour responses (and of --harmonise)')
-    r.add_argument('--chart-free-model', default='auto', choices=('auto', 'gain', 'gain_offset', 'matrix_3x3', 'affine_3x4'))
+    add_arguments(r, ColorEvalConfig, ['chart_free_model'])
     r.add_argument('--json', help='write the report here')
     r.add_argument('--figures', help='write colour_methods.png and colour_images.png into this folder')
     r.add_argument('--quiet', action='store_true')

@@ -5,30 +5,27 @@ from pathlib import Path
 
 from volcap_core.errors import BadInput
 from volcap_core.files import write_json
-from volcap_fusion import VOXEL_SIZE
+from volcap_core.settings import add_arguments, config_from_args
+from volcap_fusion.config import FusionConfig
+from volcap_pipeline import FOLDER_FUSION
 
-from .graph import DRIVERS
+from .graph import LiveConfig, RunConfig
 
 
 def cmd_run(args) -> int:
-    from .run_graph import RunConfig, run
-    cfg = RunConfig(args.bag, args.calibration, args.out, voxel_size=args.voxel, rate=args.rate,
-                    composed=args.composed, depth_upsample=args.depth_upsample, full_depth=not args.half_depth,
-                    progress=not args.quiet)
+    from .run_graph import run
+    cfg = config_from_args(RunConfig, args, bag=args.bag, calibration=args.calibration, out=args.out,
+                           progress=not args.quiet)
     report = run(cfg)
     print('\n'.join(report.lines()))
     return 0 if report.ok else 1
 
 
 def cmd_live(args) -> int:
-    from .live import LiveConfig, run_live, summary_figures
+    from .live import run_live, summary_figures
     from .live_controller import LiveController
-    cfg = LiveConfig(args.calibration, bag=args.bag, driver=args.driver, registered=args.registered,
-                     color_format=args.color_format, cameras=args.cameras.split(',') if args.cameras else None,
-                     voxel_size=args.voxel, depth_scale=args.depth_scale, every=args.every,
-                     latency_budget_ms=args.latency_budget_ms, composed=args.composed, output_dir=args.output_dir or '',
-                     rig_file=args.rig_file or '', seconds=args.seconds, warmup_s=args.warmup,
-                     source_nice=args.source_nice, rate=args.rate)
+    cfg = config_from_args(LiveConfig, args, calibration=args.calibration,
+                           cameras=args.cameras.split(',') if args.cameras else None)
     result = run_live(cfg, on_summary=None if args.quiet else lambda s: print(LiveController.line(s), flush=True))
     result['figures'] = summary_figures(result['summaries'], cfg.warmup_s)
     f = result['figures']
@@ -71,12 +68,9 @@ def cmd_operator(args) -> int:
 
 
 def cmd_fuse_frames(args) -> int:
-    from volcap_fusion.tsdf import FusionConfig
     from volcap_pipeline.rig import fuse_folder
     intrinsics = args.intrinsics or str(Path(args.folder) / 'intrinsics.K.txt')
-    box = {'box_center': tuple(args.box_center)} if args.box_center else {}
-    cfg = FusionConfig(voxel_size=args.voxel, weight_threshold=args.weight_threshold, depth_max=args.depth_max,
-                       capture_volume=args.capture_volume, box_size=tuple(args.box_size), **box)
+    cfg = config_from_args(FusionConfig, args, defaults=FOLDER_FUSION)
     report = fuse_folder(args.folder, intrinsics, cfg, args.out, stride=args.stride)
     c = report['distance_to_bare_open3d']
     print(f'fused {report["frames"]} frames into {args.out} ({report["triangles"]} triangles), capture volume from '
@@ -92,38 +86,15 @@ def add_parsers(sub) -> None:
     r.add_argument('bag')
     r.add_argument('--calibration', required=True)
     r.add_argument('--out', required=True, help='output folder (frames/, metrics.json, renders/)')
-    r.add_argument('--composed', action='store_true', help='run every node in this process')
-    r.add_argument('--voxel', type=float, default=VOXEL_SIZE, help='TSDF voxel size (m)')
-    r.add_argument('--depth-upsample', type=int, default=1, help='depth resampled this many times finer')
-    r.add_argument('--half-depth', action='store_true',
-                   help="clean depth at the filter's default half colour size (less to clean and send, coarser)")
-    r.add_argument('--rate', type=float, default=0.04,
-                   help='playback speed; the graph must keep up to fuse every frame set (2 cores: 0.04, '
-                        'about 1.2 frame sets/s)')
+    add_arguments(r, RunConfig)
     r.add_argument('--quiet', action='store_true')
     r.set_defaults(func=cmd_run)
 
     live = sub.add_parser('live', help='the graph on live topics (camera drivers, or a bag looped at real time), '
                                        'kept real time by admitting only the frame sets it can process')
     live.add_argument('--calibration', required=True)
-    live.add_argument('--bag', help='loop this bag at real time with fresh stamps instead of camera drivers')
-    live.add_argument('--driver', default='volcap', choices=DRIVERS, help="whose topics the cameras publish")
-    live.add_argument('--registered', action='store_true', help='the driver registers depth to colour')
-    live.add_argument('--color-format', default='raw', choices=('raw', 'jpeg'))
-    live.add_argument('--rig-file', help='rig description YAML for the depth-to-colour extrinsic')
-    live.add_argument('--rate', type=float, default=1.0, help='with --bag, its playback speed (1: real time)')
-    live.add_argument('--source-nice', type=int, default=0,
-                      help="with --bag, the player's niceness (e.g. 10: it yields the CPU to the graph, as "
-                           "drivers on cores of their own would)")
     live.add_argument('--cameras', help='comma-separated camera namespaces (default: the calibration\'s)')
-    live.add_argument('--voxel', type=float, default=0.01, help='TSDF voxel size (m)')
-    live.add_argument('--depth-scale', type=float, default=0.5, help='cleaned depth size as a fraction of colour')
-    live.add_argument('--every', type=int, default=0, help='admit one frame set in N (0: from the measured load)')
-    live.add_argument('--latency-budget-ms', type=float, default=1000.0)
-    live.add_argument('--composed', action='store_true', help='run every node in this process')
-    live.add_argument('--output-dir', help='also write the sequence here')
-    live.add_argument('--seconds', type=float, help='stop after this long (default: Ctrl-C)')
-    live.add_argument('--warmup', type=float, default=10.0, help='seconds left out of the final figures')
+    add_arguments(live, LiveConfig)
     live.add_argument('--json', help='write every second\'s figures here at the end')
     live.add_argument('--quiet', action='store_true')
     live.set_defaults(func=cmd_live)
@@ -150,15 +121,8 @@ def add_parsers(sub) -> None:
     f.add_argument('folder')
     f.add_argument('--intrinsics', help='3x3 intrinsic matrix (text; default FOLDER/intrinsics.K.txt)')
     f.add_argument('--out', required=True, help='mesh PLY (a .json report and .png render are written beside it)')
-    f.add_argument('--voxel', type=float, default=0.01)
-    f.add_argument('--weight-threshold', type=float, default=1.0)
-    f.add_argument('--depth-max', type=float, default=6.5, help='depth beyond this is not fused (m)')
-    f.add_argument('--capture-volume', choices=('auto', 'data'), default='auto',
-                   help='auto: a --box-size box where the cameras converge, else the bounds of all depth; '
-                        'data: always the bounds of all depth')
-    f.add_argument('--box-size', type=float, nargs=3, default=(2.6, 2.6, 2.6), metavar=('X', 'Y', 'Z'))
-    f.add_argument('--box-center', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
-                   help='a fixed capture box centre (world frame of the poses)')
+    add_arguments(f, FusionConfig, ['voxel_size', 'weight_threshold', 'depth_max', 'capture_volume', 'box_size',
+                                    'box_center'], defaults=FOLDER_FUSION)
     f.add_argument('--stride', type=int, default=1, help='use every Nth frame')
     f.add_argument('--quiet', action='store_true')
     f.set_defaults(func=cmd_fuse_frames)

@@ -3,8 +3,13 @@
 same list on a full ROS install. No rclpy here, so a launch file can import it."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 from volcap_core import topics
 from volcap_core.errors import BadInput
+from volcap_core.settings import setting
+from volcap_fusion import VOXEL_SIZE
 
 NodeSpec = tuple[str, str, str, dict, dict]   # (package, executable, namespace, parameters, remaps)
 
@@ -86,3 +91,45 @@ def live_controller(cameras: list[str], params: dict, driver: str = 'volcap', re
     camera_maps = remaps or {c: per_camera for c in cameras}
     controller_remaps = {f'{c}/{k}': f'{c}/{v}' for c in cameras for k, v in camera_maps.get(c, {}).items()}
     return ('volcap_bringup', 'live_controller', '', {'cameras': list(cameras), **params}, controller_remaps)
+
+
+@dataclass
+class RunConfig:
+    """`volcap run`: a bag through the whole graph, every frame set fused."""
+    bag: str | Path
+    calibration: str | Path
+    out: str | Path                   # frames/, metrics.json, renders/
+    voxel_size: float = setting(VOXEL_SIZE, 'TSDF voxel edge (m)', 0.0005, 0.1, option='--voxel')
+    rate: float = setting(0.04, 'bag playback speed; the graph must keep up to fuse every frame set (2 cores: 0.04, '
+                          'about 1.2 frame sets/s)', 0.001, 10.0)
+    composed: bool = setting(False, 'run every node in this process (else each in its own, as on a rig)')
+    depth_upsample: int = setting(1, 'depth resampled this many times finer before integration', 1, 4)
+    half_depth: bool = setting(False, 'clean depth at half the colour size (less to clean and send, coarser: '
+                               '2.7 mm against 1.3 mm at 4 mm voxels on the demo bag)')
+    settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
+    progress: bool = True
+
+
+@dataclass
+class LiveConfig:
+    """`volcap live`: the graph on live topics, kept real time by admission control."""
+    calibration: str | Path
+    bag: str | Path | None = setting(None, 'loop this bag at real time with fresh stamps instead of camera drivers')
+    driver: str = setting('volcap', 'whose topics the cameras publish (without --bag)', choices=DRIVERS)
+    registered: bool = setting(False, 'the driver registers depth to colour')
+    color_format: str = setting('raw', 'the drivers\' colour: raw Image or JPEG CompressedImage (without --bag)',
+                                choices=('raw', 'jpeg'))
+    cameras: list[str] | None = None     # default: the calibration's
+    voxel_size: float = setting(LIVE_VOXEL, 'TSDF voxel edge (m)', 0.0005, 0.1, option='--voxel')
+    depth_scale: float = setting(LIVE_DEPTH_SCALE, 'cleaned depth size as a fraction of the colour size', 0.05, 4.0)
+    every: int = setting(0, 'admit one frame set in N (0: chosen from the measured load)', 0, 1000)
+    latency_budget_ms: float = setting(1000.0, 'the latency the admission keeps under (ms)', 10.0, 60_000.0)
+    composed: bool = setting(False, 'run every node in this process')
+    output_dir: str = setting('', 'also write the sequence here (empty: no sequence)')
+    rig_file: str = setting('', 'rig description YAML for the depth-to-colour extrinsic')
+    rate: float = setting(1.0, 'with --bag, its playback speed (1: real time)', 0.01, 10.0)
+    seconds: float | None = setting(None, 'stop after this long (default: at Ctrl-C)', 0.0, 1e9)
+    warmup_s: float = setting(10.0, 'seconds left out of the final figures', 0.0, 3600.0, option='--warmup')
+    probe: bool = False                  # also host a renderer stand-in that times every mesh
+    source_nice: int = setting(0, 'with --bag, the player\'s niceness (e.g. 10: it yields the CPU to the graph, as '
+                               'drivers on cores of their own would)', -20, 19)

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -27,9 +25,8 @@ from volcap_core.errors import BadInput
 from volcap_core.frames import camera_topics, read_rig
 
 from .graph import (
-    LIVE_DEPTH_SCALE,
     LIVE_FRAME_TIMEOUT_MS,
-    LIVE_VOXEL,
+    LiveConfig,
     NodeSpec,
     camera_remaps,
     live_controller,
@@ -39,28 +36,6 @@ from .graph import (
 from .probe import RendererProbe
 from .run_graph import expected_subscribers, graph_subscriptions
 from .session import GraphSession
-
-
-@dataclass
-class LiveConfig:
-    calibration: str | Path
-    bag: str | Path | None = None        # looped at real time with fresh stamps (else: drivers run elsewhere)
-    driver: str = 'volcap'               # whose topics the cameras publish (no bag)
-    registered: bool = False
-    color_format: str = 'raw'            # raw | jpeg (no bag)
-    cameras: list[str] | None = None     # default: the calibration's
-    voxel_size: float = LIVE_VOXEL
-    depth_scale: float = LIVE_DEPTH_SCALE     # cleaned depth size as a fraction of the colour size
-    every: int = 0                       # 0: admission chosen from the load; N: one set in N
-    latency_budget_ms: float = 1000.0
-    composed: bool = False
-    output_dir: str = ''
-    rig_file: str = ''
-    rate: float = 1.0                    # the bag's playback speed (1: real time)
-    seconds: float | None = None         # None: until Ctrl-C
-    warmup_s: float = 10.0               # figures and CPU times from after this
-    probe: bool = False
-    source_nice: int = 0                 # the bag player's niceness (it stands in for drivers on their own cores)
 
 
 def _capture_offset_s(reader: BagReader) -> float:

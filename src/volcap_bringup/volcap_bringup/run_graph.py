@@ -23,25 +23,10 @@ from volcap_core.errors import BadInput
 from volcap_core.files import write_json
 from volcap_core.frames import camera_topics, read_rig
 from volcap_core.rig import Rig
-from volcap_fusion import VOXEL_SIZE
 
-from .graph import NodeSpec, rig_graph, stream_remaps
+from .graph import NodeSpec, RunConfig, rig_graph, stream_remaps
 from .probe import RendererProbe
 from .session import GraphSession, spec_name
-
-
-@dataclass
-class RunConfig:
-    bag: str | Path
-    calibration: str | Path
-    out: str | Path                   # frames/, metrics.json, renders/
-    voxel_size: float = VOXEL_SIZE
-    rate: float = 0.04                # bag playback speed; the graph must keep up with it to fuse every set
-    composed: bool = False
-    depth_upsample: int = 1
-    full_depth: bool = True           # cleaned depth at the colour resolution (False: half of it, coarser, cheaper)
-    settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
-    progress: bool = True
 
 
 def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str],
@@ -56,7 +41,7 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
     # The nodes sit on whatever topics the bag holds (volcap's or a vendor driver's), as on a rig.
     maps = {c: stream_remaps(c, layout[c]) for c in cameras}
     filters = {c: {'reliable': True, **maps[c][1]} for c in cameras}
-    if not cfg.full_depth:
+    if cfg.half_depth:
         # Half-size clean depth puts a 6 mm pixel footprint under 4 mm voxels (2.7 mm accuracy
         # on the demo bag, 1.3 mm at full size), for 5 ms less cleaning per camera.
         for c in cameras:

@@ -22,14 +22,14 @@ from volcap_core.rig import Rig
 
 from .board import BoardConfig, reference_srgb8
 from .chart import quad_mean
-from .color import METHODS, ColorFit, fit_camera_color, illuminated_reference, view_illumination
+from .color import ColorFit, fit_camera_color, illuminated_reference, view_illumination
+from .config import CalibrationConfig  # noqa: F401 (re-exported: its home before config.py)
 from .coverage import Coverage, advice_for, rig_coverage
 from .detect import BoardDetector, DetectionError
 from .extrinsics import (
     CalibrationError,
     ExtrinsicResult,
     Observation,
-    SolverConfig,
     check_against_depth,
     depth_points,
     solve_rig,
@@ -45,24 +45,6 @@ class CameraFrame:
     color_model: CameraModel
     depth: np.ndarray | None = None    # (h, w) float32 metres, depth camera geometry
     depth_model: CameraModel | None = None
-
-
-@dataclass
-class CalibrationConfig:
-    reference: str | None = None         # default: the rig's first camera
-    solver: SolverConfig = field(default_factory=SolverConfig)
-    use_depth: bool = True
-    color_methods: tuple[str, ...] = METHODS
-    color_method: str | None = None     # None: the best leave-one-patch-out model
-    min_patch_px: float = 12.0           # shortest patch side in the image to sample it
-    patch_inner: float = 0.6             # fraction of the patch (per side) that is averaged
-    max_chart_angle_deg: float = 70.0    # chart seen more obliquely than this is not sampled
-    # the rig's target: a camera is flagged weak when weak_margin x its predicted RMS pose error
-    # exceeds it. The prediction is an RMS, so among several cameras one comes out beyond it: on
-    # synthetic studios the worst camera reached 2.2x the largest prediction (bench/calib_studios.py).
-    max_rot_err_deg: float = 0.1
-    max_trans_err_mm: float = 2.0
-    weak_margin: float = 2.0
 
 
 @dataclass
@@ -109,7 +91,7 @@ def patch_colors(image: np.ndarray, camera: CameraModel, T_cam_board: np.ndarray
 
 class Calibrator:
     def __init__(self, rig: Rig, board: BoardConfig, cfg: CalibrationConfig = CalibrationConfig()):
-        if cfg.reference is not None and cfg.reference not in rig.names:
+        if cfg.reference and cfg.reference not in rig.names:
             raise BadInput(f'reference camera {cfg.reference!r} is not in the rig ({", ".join(rig.names)})')
         self.rig, self.board, self.cfg = rig, board, cfg
         self.detector = BoardDetector(board, cfg.solver.min_corners)
@@ -213,7 +195,7 @@ class Calibrator:
             raise CalibrationError(f'cameras never saw the board ({self.views} frame sets)',
                                    {c: _why_unseen(self.rejected[c]) for c in unseen})
         try:
-            extrinsics = solve_rig(self.observations, models, reference, self.cfg.solver, self.rejected)
+            extrinsics = solve_rig(self.observations, models, reference, self.cfg.solver_config(), self.rejected)
         except CalibrationError as e:
             coverage = self.coverage(reference)
             if coverage.advice:
@@ -233,7 +215,7 @@ class Calibrator:
             if len(np.unique(patch)) < 12:
                 color_errors[c] = f'chart seen on {len(np.unique(patch))} of 24 patches, need 12'
                 continue
-            fits[c] = fit_camera_color(measured, ref, patch, self.cfg.color_methods, self.cfg.color_method)
+            fits[c] = fit_camera_color(measured, ref, patch, self.cfg.color_methods, self.cfg.color_method or None)
         cams = {}
         for c in self.rig.names:
             rep = extrinsics.cameras[c]

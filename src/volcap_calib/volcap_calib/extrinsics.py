@@ -24,6 +24,7 @@ from volcap_core.camera import CameraModel
 from volcap_core.errors import BadInput, VolcapError
 from volcap_core.poses import from_rotvec_t, invert, make_transform, rotation_angle_deg, to_rotvec_t, transform_points
 
+from .config import SolverConfig  # noqa: F401 (re-exported: its home before config.py)
 from .detect import Detection
 
 
@@ -49,23 +50,6 @@ class Observation:
     @property
     def corners(self) -> int:
         return len(self.detection)
-
-
-@dataclass
-class SolverConfig:
-    min_corners: int = 6
-    pixel_sigma: float = 0.5           # px; reprojection residuals are divided by this
-    depth_sigma: float = 0.004         # m; depth-to-plane residuals are divided by this
-    depth_weight: float = 1.0          # 0 = reprojection only
-    # depth samples per observation in the joint problem: 1000 against 60 took the worst camera of
-    # synthetic studios from 5.7 to 2.3 mm (6 guided poses) and 21 to 9 mm (6 cameras, 6 poses);
-    # more gained nothing and made the predicted error overconfident (bench/calib_studios.py)
-    depth_points: int = 1000
-    robust_scale: float = 3.0          # soft-L1 knee, in sigmas
-    max_pose_disagreement_deg: float = 5.0   # PnP vs depth-derived pose of one observation
-    max_pose_disagreement_m: float = 0.05
-    max_reproj_rms_px: float = 1.5     # a camera above this after the solve is inconsistent
-    max_depth_rms_mm: float = 20.0
 
 
 @dataclass

@@ -20,8 +20,9 @@ from volcap_core.frames import frame_sets, read_rig
 from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, PHASE
 
 from .board import BoardConfig
-from .calibrate import CalibrationConfig, CalibrationOutcome, Calibrator, CameraFrame
-from .extrinsics import SolverConfig, depth_points
+from .calibrate import CalibrationOutcome, Calibrator, CameraFrame
+from .config import CalibrateConfig, CalibrationConfig  # noqa: F401 (CalibrateConfig re-exported)
+from .extrinsics import depth_points
 from .icp import refine_with_icp
 from .report import color_figure, color_report, color_summary, poses_figure
 
@@ -89,26 +90,6 @@ def refine_from_bag(bag: str | Path, calibration: Calibration, frame: int) -> di
 
 
 @dataclass
-class CalibrateConfig:
-    bag: str | Path
-    out: str | Path = 'calibration.yaml'
-    report_dir: str | Path | None = None     # default: beside ``out``
-    board_file: str | Path | None = None
-    reference: str | None = None
-    use_depth: bool = True
-    color_method: str | None = None
-    all_frames: bool = False
-    icp: bool = False
-    icp_frame: int = 0
-    progress: bool = True
-
-    def solver_config(self) -> CalibrationConfig:
-        return CalibrationConfig(reference=self.reference, use_depth=self.use_depth,
-                                 color_method=self.color_method or None,
-                                 solver=SolverConfig(depth_weight=1.0 if self.use_depth else 0.0))
-
-
-@dataclass
 class CalibrateReport:
     calibration: Calibration
     outcome: CalibrationOutcome
@@ -156,7 +137,7 @@ class CalibrateReport:
 def run(cfg: CalibrateConfig) -> CalibrateReport:
     """Calibrate from the bag and write the calibration and its report. Raises CalibrationError
     (naming the cameras) when the views do not determine the rig: the output is then untouched."""
-    calibrator = calibrator_from_bag(cfg.bag, load_board(cfg.board_file), cfg.solver_config(), cfg.all_frames,
+    calibrator = calibrator_from_bag(cfg.bag, load_board(cfg.board_file), cfg.solve, cfg.all_frames,
                                      cfg.progress)
     outcome = calibrator.solve()
     calibration = outcome.calibration

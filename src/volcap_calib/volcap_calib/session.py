@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from volcap_core.calibration import Calibration
@@ -15,10 +15,9 @@ from volcap_core.settings import color_transport_setting, setting, tf_prefix_set
 from volcap_core.topics import CALIBRATION_PHASE, camera_names
 
 from .board import BoardConfig
-from .calibrate import CalibrationConfig, Calibrator, CameraFrame
-from .color import METHODS
+from .calibrate import Calibrator, CameraFrame
+from .config import CalibrationConfig
 from .coverage import Coverage
-from .extrinsics import SolverConfig
 
 
 @dataclass
@@ -31,12 +30,9 @@ class CalibrationServiceConfig:
     tf_prefix: str = tf_prefix_setting()
     color_transport: str = color_transport_setting()
     board_file: str = setting('', 'board YAML (empty: the volcap board)', read_only=True)
-    reference: str = setting('', 'camera whose colour frame is the world (empty: the first)')
     collect_phase: str = setting(CALIBRATION_PHASE, 'gather frame sets only in this announced phase '
                                  '(empty: always)')
-    use_depth: bool = setting(True, 'add depth-to-board-plane residuals to the solve')
-    color_method: str = setting('', 'force a colour model (empty: leave-one-out choice)',
-                                choices=('', *METHODS))
+    solve: CalibrationConfig = field(default_factory=CalibrationConfig)    # reference, use_depth, colour, target
     queue_size: int = setting(16, 'frame sets waiting for detection before the oldest is dropped', 1, 1000,
                               read_only=True)
     drain_timeout_s: float = setting(60.0, 'how long a calibrate call waits for queued frame sets to be detected',
@@ -127,7 +123,4 @@ class CalibrationSession:
             return self.calibrator.coverage() if self.calibrator else None
 
     def _solver_config(self) -> CalibrationConfig:
-        c = self.cfg
-        return CalibrationConfig(reference=c.reference or None, use_depth=c.use_depth,
-                                 color_method=c.color_method or None,
-                                 solver=SolverConfig(depth_weight=1.0 if c.use_depth else 0.0))
+        return self.cfg.solve

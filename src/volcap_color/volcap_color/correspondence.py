@@ -26,6 +26,8 @@ from volcap_core.camera import CameraModel
 from volcap_core.errors import BadInput
 from volcap_core.sampling import sample_bilinear
 
+from .config import CorrespondenceConfig  # noqa: F401 (re-exported: its home before config.py)
+
 
 @dataclass
 class View:
@@ -81,18 +83,6 @@ class Matches:
 
     def __len__(self) -> int:
         return len(self.pixels_a)
-
-
-@dataclass
-class CorrespondenceConfig:
-    depth_tolerance_m: float = 0.01      # absolute part of the z-buffer agreement test
-    depth_tolerance_rel: float = 0.005   # plus this share of the depth (ToF noise grows with it)
-    min_fraction: float = 0.01           # pairs with fewer matches (share of a's pixels) are left out
-    max_angle_deg: float = 75.0          # surface seen more obliquely than this by either camera: skipped
-    max_round_trip_px: float = 0.5       # b's surface point at the match must project back this close to a's pixel
-    max_gradient: float = 12.0           # luminance gradient (levels/px) above which a pixel is a texture edge
-                                         # and left out, in either camera (0: keep all)
-    stride: int = 1                      # use every stride-th pixel of a in x and y
 
 
 def smooth_depth(depth: np.ndarray, diameter: int = 9, sigma_m: float = 0.015, sigma_px: float = 4.0) -> np.ndarray:

@@ -3,31 +3,17 @@ cameras of a few capture frame sets, one linear model per camera making them agr
 into the calibration as each camera's colour model (the chart fit kept as ``previous``)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from volcap_core.calibration import Calibration
 from volcap_core.color import ColorModel
 from volcap_core.errors import BadInput
-from volcap_core.settings import setting, validate
 
-from .correspondence import CorrespondenceConfig, View, cameras_in, find_correspondences, merge_matches
-from .methods import CHART_FREE_MODELS, ModelChoice, chart_free_fit, choose_chart_free_model, identity_models
-
-
-@dataclass
-class ColorFitConfig:
-    model: str = setting('auto', 'per-camera model (auto: the simplest that fits without hurting dark pixels, '
-                                 'or none when the rig is already consistent)', choices=('auto',) + CHART_FREE_MODELS)
-    reference: str = setting('mean', 'mean (no camera favoured), chart (on top of the calibration\'s chart '
-                                     'models, anchored to the board views) or a camera name')
-    fit_min_fraction: float = setting(0.001, 'camera pairs with fewer pixels in correspondence are left out',
-                                      0.0, 1.0)
-    correspondence: CorrespondenceConfig = field(default_factory=lambda: CorrespondenceConfig(min_fraction=0.0))
-
-    def validate(self) -> None:
-        validate(self)
+from .config import ColorFitConfig  # noqa: F401 (re-exported: its home before config.py)
+from .correspondence import View, cameras_in, find_correspondences, merge_matches
+from .methods import ModelChoice, chart_free_fit, choose_chart_free_model, identity_models
 
 
 @dataclass

@@ -28,11 +28,10 @@ from volcap_core.color import ColorModel, srgb_to_lab, srgb_to_linear
 from volcap_core.errors import BadInput
 
 from .apply import pixel_centres
+from .config import CHART_FREE_MODELS, SELECTABLE_MODELS  # noqa: F401 (re-exported)
 from .correspondence import Matches
 
 Mapping = Callable[[np.ndarray], np.ndarray]
-CHART_FREE_MODELS = ('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4')
-SELECTABLE_MODELS = ('gain', 'matrix_3x3', 'affine_3x4')     # simplest first
 DARK_L = 25.0          # CIELAB L* below which a correspondence counts as dark
 SATURATED_CHROMA = 25.0     # CIELAB C*ab (as recorded) above which a colour counts as saturated
 CONTRAST_KEPT = 0.98   # share of the simplest model's lightness spread a richer chosen model must keep

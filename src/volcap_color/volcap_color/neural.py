@@ -39,9 +39,9 @@ from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write, write_json
 
 from .apply import ImageCorrector, RegionLut, pixel_centres
+from .config import HarmoniseConfig
 from .correspondence import View, split_frame_sets
 from .figures import training_figure
-from .neural_config import HarmoniseConfig
 
 CHECKPOINT = 'checkpoint.pt'
 FIELD_FILE = 'field.pt'
@@ -152,7 +152,7 @@ def training_samples(sets: list[list[View]], cameras: list[str], total: int | No
 
 
 # --- devices and the training loop --------------------------------------------------------------
-def pick_device(name: str) -> torch.device:
+def torch_device(name: str) -> torch.device:
     if name == 'auto':
         return torch.device('cuda' if torch.cuda.is_available() else 'cpu')
     if name == 'cuda' and not torch.cuda.is_available():
@@ -345,7 +345,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     checkpoint = out_dir / CHECKPOINT
     if not resume:
         checkpoint.unlink(missing_ok=True)
-    device = pick_device(cfg.device)
+    device = torch_device(cfg.device)
     bf16 = use_bf16(cfg.precision, device)
     torch.manual_seed(cfg.seed)
     torch.use_deterministic_algorithms(True, warn_only=device.type == 'cuda')
@@ -423,7 +423,7 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     cfg_dict = {k.replace('colour', 'color'): v for k, v in manifest['config'].items()}
     cfg_dict['lut_grid'] = tuple(cfg_dict['lut_grid'])
     cfg = HarmoniseConfig(**cfg_dict)
-    dev = pick_device(device)
+    dev = torch_device(device)
     state = torch.load(models_dir / FIELD_FILE, map_location=dev, weights_only=False)['state']
     field_model = ColorField(state['point_mean'], state['point_std'], state['camera_mean'], state['camera_std'],
                              cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies).to(dev)

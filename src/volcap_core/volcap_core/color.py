@@ -15,9 +15,9 @@ import colour as color_science
 import cv2
 import numpy as np
 
+from .color_models import METHODS
 from .errors import BadInput
 
-METHODS = ('paper_diagonal', 'matrix_3x3', 'affine_3x4', 'root_polynomial_2', 'root_polynomial_3', 'gamma_3x3')
 ROOT_DEGREE = {'root_polynomial_2': 2, 'root_polynomial_3': 3}
 
 

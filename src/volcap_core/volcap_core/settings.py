@@ -7,7 +7,10 @@ the parameter tables in ``docs/``).
         voxel_size: float = setting(0.004, 'TSDF voxel edge (m)', 0.0005, 0.1)
 
 Nested config dataclasses are flattened (their field names must be unique within the outer
-config). Tuples become ROS list parameters; ``None`` is stood for by ``none_as``.
+config). Tuples become ROS list parameters; ``None`` is stood for by ``none_as``. Command-line
+options come from the same declarations (``add_arguments``, ``config_from_args``): the option's
+name, type, help, range and choices are the setting's, and its default is the dataclass's, never
+restated in argparse.
 """
 from __future__ import annotations
 
@@ -20,14 +23,16 @@ from .errors import BadInput
 
 
 def setting(default=MISSING, description: str = '', low=None, high=None, *, choices: tuple | None = None,
-            read_only: bool = False, none_as=None, default_factory=MISSING):
+            read_only: bool = False, none_as=None, default_factory=MISSING, option: str | tuple[str, ...] = ()):
     """A dataclass field with its documentation and limits.
 
     ``low``/``high`` bound numbers (and every element of a tuple); ``choices`` lists the allowed
     values; ``read_only`` settings take effect at start only; ``none_as`` is the list parameter
-    value that stands for ``None``."""
+    value that stands for ``None``; ``option``: other spellings of its command-line option
+    (``--voxel`` for ``voxel_size``, whose own option is ``--voxel-size``)."""
     metadata = {'description': description, 'low': low, 'high': high, 'choices': choices,
-                'read_only': read_only, 'none_as': none_as}
+                'read_only': read_only, 'none_as': none_as,
+                'option': (option,) if isinstance(option, str) else tuple(option)}
     if default_factory is not MISSING:
         return field(default_factory=default_factory, metadata=metadata)
     return field(default=default, metadata=metadata)
@@ -45,6 +50,9 @@ class Setting:
     choices: tuple | None
     read_only: bool
     none_as: Any
+    options: tuple[str, ...] = ()   # other spellings of the command-line option
+    kind: type = str                # the value's type on the command line (of each element of a tuple)
+    arity: int = 1                  # values it takes on the command line (a tuple's length)
 
     @property
     def parameter_default(self):
@@ -79,12 +87,37 @@ def settings(cls) -> list[Setting]:
         m = f.metadata
         if 'description' not in m:
             continue
-        out.append(Setting(f.name, (f.name,), _default(f), m['description'], m['low'], m['high'], m['choices'],
-                           m['read_only'], m['none_as']))
+        default = _default(f)
+        out.append(Setting(f.name, (f.name,), default, m['description'], m['low'], m['high'], m['choices'],
+                           m['read_only'], m['none_as'], m.get('option', ()), _kind(default, hints.get(f.name)),
+                           _arity(default, hints.get(f.name))))
     names = [s.name for s in out]
     if len(set(names)) != len(names):
         raise TypeError(f'{cls.__name__}: flattened setting names must be unique, got {names}')
     return out
+
+
+def _kind(default, hint) -> type:
+    """The command-line type of a setting: its default's (an element's, for tuples), else the
+    first of bool, int, float, str its type hint names (a setting whose default is None)."""
+    sample = default[0] if isinstance(default, tuple) and default else default
+    if sample is not None and isinstance(sample, (bool, int, float, str)):
+        return type(sample)
+    args = typing.get_args(hint) or (hint,)
+    for kind in (bool, int, float, str):
+        if kind in args or any(kind in typing.get_args(a) for a in args):
+            return kind
+    return str
+
+
+def _arity(default, hint) -> int:
+    """How many values a setting takes: a tuple's length (its default's, or its type hint's)."""
+    if isinstance(default, tuple):
+        return len(default)
+    for a in (hint, *typing.get_args(hint)):
+        if typing.get_origin(a) is tuple:
+            return len(typing.get_args(a))
+    return 1
 
 
 def to_parameter(s: Setting, value):
@@ -105,15 +138,16 @@ def from_parameter(s: Setting, value):
     return value
 
 
-def build(cls, values: dict[str, Any]):
+def build(cls, values: dict[str, Any], direct: dict[str, Any] | None = None):
     """A config of ``cls`` from flattened setting values (ROS parameter form); the others keep
-    their defaults. Raises ValueError for unknown names, values out of range and combinations the
-    config's own ``validate()`` refuses."""
+    their defaults. ``direct``: constructor arguments that are not settings (the input path of a
+    command), passed as they are. Raises BadInput for unknown names, values out of range and
+    combinations the config's own ``validate()`` refuses."""
     specs = {s.name: s for s in settings(cls)}
     unknown = set(values) - set(specs)
     if unknown:
         raise BadInput(f'{cls.__name__} has no setting {", ".join(sorted(unknown))}')
-    nested: dict[tuple, dict] = {}
+    nested: dict[tuple, dict] = {(): dict(direct or {})}
     for name, value in values.items():
         s = specs[name]
         nested.setdefault(s.path[:-1], {})[s.path[-1]] = from_parameter(s, value)
@@ -185,3 +219,53 @@ def color_transport_setting():
 
 def tf_prefix_setting():
     return setting('', 'prepended to the camera_info frame ids when looking them up on /tf_static', read_only=True)
+
+
+def add_arguments(parser, cls, names=None, exclude=(), defaults: dict | None = None) -> None:
+    """The settings of ``cls`` (``names``: only these, in this order; less ``exclude``) as options
+    of an argparse ``parser``: ``--voxel-size`` for ``voxel_size`` (and the setting's other
+    spellings), its type, choices and help with the default and range. Options that are not
+    given stay absent from the parsed arguments, so the dataclass's default applies
+    (``config_from_args``). Booleans that default to False are flags; those that default to True
+    take ``--no-...``; tuples take as many values as their default has; a setting that defaults
+    to None takes a value or stays None."""
+    import argparse
+    specs = {s.name: s for s in settings(cls)}
+    unknown = set(names or ()) - set(specs)
+    if unknown:
+        raise TypeError(f'{cls.__name__} has no setting {", ".join(sorted(unknown))}')
+    for name in (names or list(specs)):
+        if name in exclude:
+            continue
+        s = specs[name]
+        flags = ['--' + s.name.replace('_', '-'), *s.options]
+        default = (defaults or {}).get(s.name, s.default)
+        shown = 'none' if default is None else ' '.join(map(str, default)) if isinstance(default, tuple) \
+            else str(default).lower() if isinstance(default, bool) else repr(default) if default == '' else str(default)
+        limits = f'; {s.low} - {s.high}' if s.low is not None and s.high is not None and not s.choices else ''
+        help_text = f'{s.description} (default: {shown}{limits})'.replace('%', '%%')
+        common = {'dest': s.name, 'default': argparse.SUPPRESS, 'help': help_text}
+        if s.kind is bool:
+            parser.add_argument(*flags, action='store_true' if not default else argparse.BooleanOptionalAction,
+                                **common)
+            continue
+        if s.arity > 1:
+            parser.add_argument(*flags, type=s.kind, nargs=s.arity, metavar=s.name.upper(), **common)
+            continue
+        parser.add_argument(*flags, type=s.kind, choices=s.choices, **common)
+
+
+def given_settings(cls, args) -> dict[str, Any]:
+    """The settings of ``cls`` given on the command line (``add_arguments``), by name."""
+    return {s.name: getattr(args, s.name) for s in settings(cls) if hasattr(args, s.name)}
+
+
+def config_from_args(cls, args, defaults: dict | None = None, **fixed):
+    """A config of ``cls`` from the options the user gave (``add_arguments``) and ``fixed``
+    values the command sets itself (settings, or constructor arguments that are not settings);
+    every other setting keeps the dataclass's default. Validated as node parameters are: a value
+    out of range or a bad combination is a ``BadInput``. ``defaults``: the command's preset, as
+    given to ``add_arguments``."""
+    specs = {s.name for s in settings(cls)}
+    values = {**(defaults or {}), **given_settings(cls, args), **{k: v for k, v in fixed.items() if k in specs}}
+    return build(cls, values, {k: v for k, v in fixed.items() if k not in specs})

@@ -28,7 +28,7 @@ are what connects the stands).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
@@ -38,8 +38,8 @@ from tqdm import tqdm
 
 from volcap_calib.color import component_differences, fit_model
 from volcap_calib.run import chart_samples, load_board
+from volcap_color.config import HarmoniseConfig
 from volcap_color.correspondence import (
-    CorrespondenceConfig,
     Matches,
     View,
     cameras_in,
@@ -66,7 +66,6 @@ from volcap_color.methods import (
     propagate,
     split_matches,
 )
-from volcap_color.neural_config import HarmoniseConfig
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.color import ColorModel, delta_e2000, linear_to_lab, srgb_to_lab, srgb_to_linear
 from volcap_core.errors import BadInput
@@ -75,22 +74,10 @@ from volcap_studio.render import ColorResponse
 from volcap_studio.session import GroundTruth
 
 from .color_figures import write_color_figures
+from .config import ColorEvalConfig  # noqa: F401 (re-exported: its home before config.py)
 
 METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon', 'paper_diagonal',
            'volcap_chart', 'volcap_chart_free', 'volcap_chart_harmonised')
-
-
-@dataclass
-class ColorEvalConfig:
-    frames: int = 4                   # capture frame sets used (alternately fit / score)
-    eval_min_fraction: float = 0.01
-    fit_min_fraction: float = 0.001
-    max_scored_per_pair: int = 50_000
-    chart_free_model: str = 'auto'    # auto: chosen per rig (choose_chart_free_model), or a CHART_FREE_MODELS name
-    chart_free_reference: str = 'mean'
-    anchor_weight: float = 0.05       # chart term of volcap_chart_harmonised, relative to correspondences
-    seed: int = 0
-    correspondence: CorrespondenceConfig = field(default_factory=lambda: CorrespondenceConfig(min_fraction=0.0))
 
 
 def _as_8bit(rgb: np.ndarray) -> np.ndarray:

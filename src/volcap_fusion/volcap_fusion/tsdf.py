@@ -24,60 +24,11 @@ import open3d.core as o3c
 from volcap_core.camera import CameraModel
 from volcap_core.errors import BadInput
 from volcap_core.poses import convergence_point, invert, transform_points
-from volcap_core.settings import setting, validate
 
-from . import VOXEL_SIZE
+from .config import FusionConfig, open3d_device  # noqa: F401 (FusionConfig re-exported)
 
 DEPTH_SCALE = 10_000.0   # depth units per metre handed to Open3D (0.1 mm; 6.5 m at most)
 FLOOR_SLACK = 0.02       # the capture box reaches this far below a studio floor (m)
-
-
-@dataclass
-class FusionConfig:
-    voxel_size: float = setting(VOXEL_SIZE, 'TSDF voxel edge (m)', 0.0005, 0.1, read_only=True)
-    trunc_voxels: float = setting(4.0, 'SDF truncation in voxels', 1.0, 32.0, read_only=True)
-    weight_threshold: float = setting(0.5, 'a voxel is meshed when more cameras than this saw it (0.5: one is enough; capped below the '
-                                      'number of cameras fused, so one camera still gives a mesh)', 0.0, 100.0,
-                                      read_only=True)
-    block_resolution: int = setting(8, 'voxels per block edge', choices=(4, 8, 16), read_only=True)
-    block_count: int = setting(40_000, 'initial voxel block capacity (it grows when needed)', 1, 10_000_000,
-                               read_only=True)
-    depth_max: float = setting(3.0, 'depth beyond this is not fused (m)', 0.1, 6.5, read_only=True)
-    # Capture box, axis-aligned in the output frame (the studio frame): edge lengths and centre
-    # (None: on the floor around the studio origin, which lies below where the rig is aimed).
-    box_size: tuple[float, float, float] = setting((2.6, 2.6, 2.6), 'capture box edge lengths (m)', 0.01, 100.0,
-                                                   read_only=True)
-    box_center: tuple[float, float, float] | None = setting(
-        None, 'capture box centre x, y, z in the output frame (m); [0.0]: standing on the studio floor around '
-        'its origin, or where the cameras point when the calibration has no floor', none_as=[0.0],
-        read_only=True)
-    capture_volume: str = setting('auto', 'auto: the box above where the cameras converge (or on the studio floor), '
-                                  'else, when they do not converge, the bounds of all their depth; data: always the '
-                                  'bounds of all depth (a room, a moving camera)', choices=('auto', 'data'),
-                                  read_only=True)
-    depth_upsample: int = setting(1, 'depth resampled this many times finer before integration', 1, 4,
-                                  read_only=True)
-    edge_tolerance: float = setting(0.02, 'depth step (m, +1 %) that separates surfaces', 0.0, 1.0, read_only=True)
-    device: str = setting('auto', 'CPU:0, CUDA:0 or auto (CUDA when Open3D has it)', read_only=True)
-
-    def validate(self) -> None:
-        validate(self)
-        size = np.asarray(self.box_size, float)
-        if size.shape != (3,) or not np.all(size > 0):
-            raise BadInput(f'box_size must be 3 positive edge lengths, got {self.box_size}')
-        if self.box_center is not None and (np.shape(self.box_center) != (3,)
-                                            or not np.all(np.isfinite(self.box_center))):
-            raise BadInput(f'box_center must be 3 finite values or None, got {self.box_center}')
-        device = o3c.Device(pick_device(self.device))
-        if device.get_type() == o3c.Device.CUDA and not o3d.core.cuda.is_available():
-            raise BadInput(f'device {self.device}: this Open3D has no CUDA device')
-
-
-def pick_device(requested: str = 'auto') -> str:
-    """'auto' is the first CUDA device when Open3D sees one, the CPU otherwise."""
-    if requested == 'auto':
-        return 'CUDA:0' if o3d.core.cuda.is_available() else 'CPU:0'
-    return requested
 
 
 @dataclass
@@ -300,7 +251,7 @@ class TsdfFusion:
     def __init__(self, cfg: FusionConfig | None = None):
         self.cfg = cfg or FusionConfig()
         self.cfg.validate()
-        self.device = o3c.Device(pick_device(self.cfg.device))
+        self.device = o3c.Device(open3d_device(self.cfg.device))
         self._rectifiers: dict[tuple[CameraModel, CameraModel], Rectifier] = {}
         self._volume: o3d.t.geometry.VoxelBlockGrid | None = None
 

@@ -60,7 +60,7 @@ from volcap_core.worker import DropOldestWorker
 from .frame_sets import FusionNodeConfig, PhaseTimeline, frame_set_views, fused_cameras, fused_phase
 from .glb import EncodeConfig, encode, simplify
 from .sequence import SequenceWriter, frame_rate
-from .tsdf import CameraView, FusionConfig, TsdfFusion, pick_device
+from .tsdf import CameraView, FusionConfig, TsdfFusion, open3d_device
 
 # Latency percentiles cover the frame sets published in the last this many seconds.
 LATENCY_WINDOW_S = 10.0
@@ -108,7 +108,7 @@ class TsdfFusionNode(Node):
         self.create_timer(0.05, self._poll)
         self.create_timer(1.0, self._report)
         self.get_logger().info(f'tsdf_fusion started: {cfg.voxel_size * 1000:.1f} mm voxels on '
-                               f'{pick_device(cfg.device)}' + (f', writing {output_dir}' if output_dir else ''))
+                               f'{open3d_device(cfg.device)}' + (f', writing {output_dir}' if output_dir else ''))
 
     def _on_node_config(self, cfg: FusionNodeConfig) -> None:
         self.node_cfg = cfg

@@ -18,6 +18,7 @@ import open3d as o3d
 from volcap_core.camera import CameraModel, depth_to_millimetres
 from volcap_core.poses import invert, transform_points
 from volcap_core.sampling import sample_bilinear
+from volcap_studio.config import ToFModel  # noqa: F401 (re-exported: its home before config.py)
 from volcap_studio.scene import Light, SceneObject
 
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -215,28 +216,6 @@ def _vignette(width: int, height: int, a: float, b: float) -> np.ndarray:
     out = (1.0 - a * r2 - b * r2 ** 2).astype(np.float32)[:, :, None]
     out.flags.writeable = False
     return out
-
-
-@dataclass
-class ToFModel:
-    """Azure Kinect NFOV-like time-of-flight behaviour."""
-    min_range: float = 0.25
-    max_range: float = 3.86
-    noise_base: float = 0.0008       # sigma(z) = base + quad * z^2 (metres)
-    noise_quad: float = 0.0010
-    grazing_cos: float = 0.12        # no return beyond ~83 deg incidence
-    dark_albedo: float = 0.03        # below this IR reflectance returns drop out
-    flying_keep: float = 0.85        # fraction of mixed pixels the sensor still reports
-    subsamples: int = 3              # S x S sub-pixel rays per pixel at discontinuities
-    edge_threshold: float = 0.02     # 3x3 depth range per (1 m + z) that marks a discontinuity
-    speckle_prob: float = 0.3        # chance per image of an interference burst
-    speckle_blobs: int = 12
-
-    def sigma(self, z: np.ndarray) -> np.ndarray:
-        return self.noise_base + self.noise_quad * z ** 2
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass

@@ -7,59 +7,28 @@ device, as they do between real units.
 """
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 
 from volcap_calib.board import BoardConfig
 from volcap_core.camera import CameraModel
-from volcap_core.errors import BadInput
 from volcap_core.poses import look_at, make_transform, perturb
 from volcap_core.rig import Rig, RigCamera, rig_camera_from_k4a
 from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, CLEAN_PLATE, camera_names
 from volcap_studio import scene as sc
-from volcap_studio.render import CameraView, ColorResponse, DepthRender, SceneRaycaster, ToFModel
+from volcap_studio.config import (  # noqa: F401 (re-exported: their home before config.py)
+    BOARD_LAYOUTS,
+    SCENES,
+    SynthConfig,
+    default_bunny_mesh,
+    default_k4a_calibration,
+    shared_data_dir,
+)
+from volcap_studio.render import CameraView, ColorResponse, DepthRender, SceneRaycaster
 
-SCENES = ('person', 'bunny')
-BOARD_LAYOUTS = ('sweep', 'pairs')
 PHASE_GAP_NS = 1_000_000_000
 START_NS = 1_700_000_000_000_000_000
-
-
-@dataclass
-class SynthConfig:
-    cameras: int = 8
-    frames: int = 10
-    board_poses: int = 12
-    board_layout: str = 'sweep'    # sweep: turned through every direction; pairs: between neighbouring stands
-    background_frames: int = 3
-    scene: str = 'person'
-    seed: int = 0
-    fps: float = 30.0
-    stamp_jitter_ms: float = 0.3
-    stand_radius: float = 1.8
-    heights: tuple[float, float] = (1.7, 0.7)
-    k4a_calibration: str = field(default_factory=lambda: default_k4a_calibration())
-    bunny_mesh: str = field(default_factory=lambda: default_bunny_mesh())
-    tof: ToFModel = field(default_factory=ToFModel)
-
-    def __post_init__(self):
-        if self.cameras < 1:
-            raise BadInput('need at least one camera')
-        if min(self.frames, self.board_poses, self.background_frames) < 0:
-            raise BadInput('frame counts must be >= 0')
-        if self.board_layout not in BOARD_LAYOUTS:
-            raise BadInput(f'unknown board layout {self.board_layout!r}; choose from {BOARD_LAYOUTS}')
-        if self.scene not in SCENES:
-            raise BadInput(f'unknown scene {self.scene!r}; choose from {SCENES}')
-        needed = [('Azure Kinect calibration', self.k4a_calibration)]
-        if self.scene == 'bunny':
-            needed.append(('bunny mesh', self.bunny_mesh))
-        for what, path in needed:
-            if not Path(path).is_file():
-                raise FileNotFoundError(f'{what} {path} not found: set VOLCAP_DATA to the shared data folder')
 
 
 @dataclass
@@ -213,15 +182,3 @@ class StudioRenderer:
 
 
 
-def shared_data_dir() -> Path:
-    """Real data the studio is modelled on: ``$VOLCAP_DATA``, else ``../shared/data`` beside the
-    checkout (factory calibration in ``azure_kinect/``, the bunny in ``meshes/``)."""
-    return Path(os.environ.get('VOLCAP_DATA') or Path(__file__).resolve().parents[4] / 'shared' / 'data')
-
-
-def default_k4a_calibration() -> str:
-    return str(shared_data_dir() / 'azure_kinect' / 'calibration.json')
-
-
-def default_bunny_mesh() -> str:
-    return str(shared_data_dir() / 'meshes' / 'bunny.ply')

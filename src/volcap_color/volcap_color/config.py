@@ -1,9 +1,43 @@
-"""Settings of ``volcap harmonise`` (``neural``), importable without torch."""
+"""The colour stage's settings, importable without torch, OpenCV or colour-science (the command
+line and the docs read them): correspondences, the chart-free fit (``volcap color-fit``) and the
+neural harmonisation (``volcap harmonise``)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from volcap_core.settings import setting, validate
+
+# The chart-free model families, and those the automatic choice picks from (simplest first).
+CHART_FREE_MODELS = ('gain', 'gain_offset', 'matrix_3x3', 'affine_3x4')
+SELECTABLE_MODELS = ('gain', 'matrix_3x3', 'affine_3x4')     # simplest first
+
+
+@dataclass
+class CorrespondenceConfig:
+    depth_tolerance_m: float = 0.01      # absolute part of the z-buffer agreement test
+    depth_tolerance_rel: float = 0.005   # plus this share of the depth (ToF noise grows with it)
+    min_fraction: float = 0.01           # pairs with fewer matches (share of a's pixels) are left out
+    max_angle_deg: float = 75.0          # surface seen more obliquely than this by either camera: skipped
+    max_round_trip_px: float = 0.5       # b's surface point at the match must project back this close to a's pixel
+    max_gradient: float = 12.0           # luminance gradient (levels/px) above which a pixel is a texture edge
+                                         # and left out, in either camera (0: keep all)
+    stride: int = 1                      # use every stride-th pixel of a in x and y
+
+
+@dataclass
+class ColorFitConfig:
+    model: str = setting('auto', 'per-camera model (auto: the simplest that fits without hurting dark pixels, '
+                                 'or none when the rig is already consistent)', choices=('auto',) + CHART_FREE_MODELS)
+    reference: str = setting('mean', 'mean (no camera favoured), chart (on top of the calibration\'s chart '
+                                     'models, anchored to the board views) or a camera name')
+    fit_min_fraction: float = setting(0.001, 'camera pairs with fewer pixels in correspondence are left out',
+                                      0.0, 1.0)
+    correspondence: CorrespondenceConfig = field(default_factory=lambda: CorrespondenceConfig(min_fraction=0.0))
+
+    def validate(self) -> None:
+        validate(self)
+
+
 
 
 @dataclass
@@ -28,7 +62,7 @@ class HarmoniseConfig:
                                       'at the camera\'s affine map onto the reference (0: the paper, D sees the '
                                       'subject only)', 0.0, 4.0)
     reference: str = setting('mean', 'camera whose colours D reproduces, or mean (E averaged over every camera)')
-    lut_colors: int = setting(17, 'live form: colour nodes per axis', 2, 65)
+    lut_colors: int = setting(17, 'live form: colour nodes per axis', 2, 65, option='--lut-colours')
     lut_grid: tuple[int, int] = setting((9, 5), 'live form: image nodes (x, y)', 2, 64)
     seed: int = setting(0, 'random seed', 0, 2**31 - 1)
     device: str = setting('auto', 'auto (cuda when present), cpu or cuda', choices=('auto', 'cpu', 'cuda'))
