@@ -22,7 +22,8 @@ from rosbags.typesys import Stores, get_typestore
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from transport import ensure_bag  # noqa: E402
 
-from volcap_core.bag_io import BagReader, BagWriter  # noqa: E402
+from volcap_core.bag_io import BagWriter  # noqa: E402
+from volcap_core.bag_reader import BagReader
 
 
 def write_bare(out: Path, topics: dict, msgs: list, compression: str) -> float:

@@ -13,11 +13,11 @@ from pathlib import Path
 import cv2
 
 from volcap_calib.board import BoardConfig, reference_srgb8
-from volcap_calib.calibrate import CalibrationConfig, Calibrator, CameraFrame
+from volcap_calib.calibrate import BoardView, CalibrationConfig, Calibrator
 from volcap_calib.chart import find_color_checker
 from volcap_calib.color import fit_camera_color
 from volcap_calib.extrinsics import sed_baseline
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.frames import frame_sets, read_rig
 from volcap_core.topics import CALIBRATION_PHASE
 
@@ -36,7 +36,7 @@ def main(bag: str) -> None:
     calibrator = Calibrator(rig, board, CalibrationConfig())
     t0 = time.perf_counter()
     for fs in sets:
-        calibrator.add(fs.index, {n: CameraFrame(f.color, f.color_model, f.depth, f.depth_model)
+        calibrator.add(fs.index, {n: BoardView(f.color, f.color_model, f.depth, f.depth_model)
                                   for n, f in fs.cameras.items()})
     t_add = (time.perf_counter() - t0) / len(images)
     t0 = time.perf_counter()

@@ -28,7 +28,7 @@ import numpy as np
 from color_stage import median_ms
 
 from volcap_core import transport
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.camera import depth_to_millimetres
 from volcap_core.frames import frame_sets, read_rig

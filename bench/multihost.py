@@ -140,7 +140,7 @@ def subscriber(seconds: float) -> dict:
     from sensor_msgs.msg import Image
 
     from volcap_core import qos, topics, transport
-    from volcap_core.conversions import cdr_stamp_ns
+    from volcap_core.cdr import cdr_stamp_ns
     transport.configure()
     rclpy.init()
     node = rclpy.create_node('fusion_host')

@@ -96,7 +96,7 @@ def write_raw(path: Path, seconds: int, messages) -> int:
 
 
 def write_volcap(path: Path, seconds: int, messages) -> int:
-    from volcap_core.bag_io import BagWriter
+    from volcap_core.bag_writer import BagWriter
     with BagWriter(path) as bag:
         for topic, msgtype, _ in messages:
             bag.add_topic(topic, msgtype)
@@ -186,7 +186,7 @@ def record_live(out: Path, frames: int, kill_after: float | None = None, split_b
         if recorder.poll() is None:
             recorder.kill()
             recorder.wait()
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     with BagReader(out) as bag:
         counts = bag.topic_counts
         readable = bag.verify()
@@ -201,7 +201,8 @@ def record_live(out: Path, frames: int, kill_after: float | None = None, split_b
 def kill_and_recover(out: Path, frames: int, kill_after: float) -> dict:
     import yaml
 
-    from volcap_core.bag_io import BagReader, recover
+    from volcap_core.bag_reader import BagReader
+    from volcap_core.bag_recovery import recover
     record_live(out, frames, kill_after=kill_after, split_bytes=500_000_000)
     files = sorted(out.glob('*.mcap'))
     meta = out / 'metadata.yaml'

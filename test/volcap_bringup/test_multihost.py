@@ -19,7 +19,7 @@ RECEIVER = '''
 import json, sys, time, rclpy
 from sensor_msgs.msg import Image
 from volcap_core import qos, transport
-from volcap_core.conversions import cdr_stamp_ns
+from volcap_core.cdr import cdr_stamp_ns
 transport.configure()
 rclpy.init()
 node = rclpy.create_node('fusion_host_probe')

@@ -15,7 +15,8 @@ from visualization_msgs.msg import Marker
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration, CameraCalibration, StudioFrame
 from volcap_core.camera import CameraModel
-from volcap_core.conversions import camera_model_to_info, glb_marker, numpy_to_image
+from volcap_core.conversions import camera_model_to_info, numpy_to_image
+from volcap_core.gltf_marker import glb_marker
 from volcap_fusion.glb import EncodeConfig, encode
 from volcap_fusion.tsdf import FusedModel
 

@@ -10,7 +10,8 @@ import yaml
 
 from volcap_bringup.cli import main
 from volcap_bringup.processes import start_node
-from volcap_core.bag_io import BagReader, BagWriter
+from volcap_core.bag_reader import BagReader
+from volcap_core.bag_writer import BagWriter
 from volcap_core.conversions import numpy_to_image
 from volcap_core.frames import read_rig
 from volcap_core.rig import Rig, rig_camera_from_k4a

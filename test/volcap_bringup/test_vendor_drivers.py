@@ -18,7 +18,7 @@ from volcap_bringup.cli import main
 from volcap_bringup.graph import camera_remaps, rig_graph
 from volcap_bringup.processes import start_node
 from volcap_core import qos, topics
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.conversions import image_to_numpy
 from volcap_core.frames import frame_sets, read_rig

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from volcap_calib.board import BoardConfig
-from volcap_calib.calibrate import CameraFrame
+from volcap_calib.calibrate import BoardView
 from volcap_calib.extrinsics import CalibrationError
 from volcap_calib.session import CalibrationServiceConfig, CalibrationSession
 from volcap_core import topics
@@ -44,7 +44,7 @@ def test_views_without_the_board_are_counted_and_a_failed_solve_keeps_the_file(t
     s = _session(tmp_path, cameras=('cam0', 'cam1'))
     s.set_rig(_rig('cam0', 'cam1'))
     blank = np.full((48, 64, 3), 128, np.uint8)
-    s.add({c: CameraFrame(blank, COLOR, None, None) for c in ('cam0', 'cam1')})
+    s.add({c: BoardView(blank, COLOR, None, None) for c in ('cam0', 'cam1')})
     s.add({})                                    # nothing usable: not a frame set
     assert s.counts() == (0, 1)
     out = tmp_path / 'calibration.yaml'

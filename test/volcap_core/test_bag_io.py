@@ -8,7 +8,9 @@ from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
-from volcap_core.bag_io import BagError, BagReader, BagWriter, message_class
+from volcap_core.bag_io import BagError, message_class
+from volcap_core.bag_reader import BagReader
+from volcap_core.bag_writer import BagWriter
 from volcap_core.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
 from volcap_driver.playback import Schedule, output_topic, parse_counts, parse_remaps, restamp_cdr
 

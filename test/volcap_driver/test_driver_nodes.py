@@ -12,7 +12,7 @@ from std_msgs.msg import String
 
 from volcap_bringup.processes import start_node, stop
 from volcap_core import qos
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.conversions import image_to_numpy, stamp_to_ns
 from volcap_studio.session import GroundTruth
 

@@ -30,7 +30,7 @@ def test_real_kinect_registration_lines_up(k4a_bag, tmp_path):
 
 def test_wrong_extrinsic_direction_is_visible_on_the_real_recording(k4a_bag):
     """The check can fail: the inverted depth-to-colour transform puts edges far off."""
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     from volcap_core.frames import frame_sets, read_rig
     from volcap_eval.registration import edge_offsets
     with BagReader(k4a_bag) as reader:

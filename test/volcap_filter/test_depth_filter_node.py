@@ -10,13 +10,7 @@ from std_msgs.msg import String
 from volcap_bringup.processes import start_node
 from volcap_core import qos, topics
 from volcap_core.camera import depth_to_millimetres
-from volcap_core.conversions import (
-    camera_model_to_info,
-    image_to_numpy,
-    numpy_to_image,
-    pointcloud2_to_points,
-    stamp_to_ns,
-)
+from volcap_core.conversions import camera_model_to_info, image_to_numpy, numpy_to_image, pointcloud2_to_points, stamp_to_ns
 from volcap_core.frames import frame_sets
 from volcap_studio.session import GroundTruth
 

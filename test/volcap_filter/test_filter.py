@@ -209,7 +209,7 @@ def test_depth_a_driver_registered_survives_cleaning(k4a_bag):
     """The real Azure Kinect frame registered as the drivers do (640x576 over 1280x720 leaves
     empty rows and columns every 4-6 px): every pixel borders a hole, so the flying-pixel test
     alone removes all of it; with the lattice bridged the surface stays and the holes stay holes."""
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     from volcap_core.frames import frame_sets, read_rig
     from volcap_filter.flying import fill_lattice_gaps
     from volcap_studio.vendor import register_like_driver

@@ -6,7 +6,8 @@ import os
 import numpy as np
 import pytest
 
-from volcap_core.bag_io import BagReader, BagWriter
+from volcap_core.bag_reader import BagReader
+from volcap_core.bag_writer import BagWriter
 from volcap_core.files import WriteError, atomic_write
 from volcap_fusion.glb import EncodeConfig
 from volcap_fusion.sequence import SUMMARY, SequenceWriter, binary_ply_size, read_ply, read_sequence

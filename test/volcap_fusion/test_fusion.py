@@ -253,7 +253,7 @@ def test_mesh_marker_deserialises_and_simplification_bounds_it():
     from rclpy.serialization import deserialize_message
     from visualization_msgs.msg import Marker
 
-    from volcap_core.conversions import mesh_to_marker_cdr
+    from volcap_core.cdr import mesh_to_marker_cdr
     model = TsdfFusion(FusionConfig(voxel_size=0.01)).fuse(sphere_views())
     small = simplify(model, len(model.triangles) // 4)
     assert 0 < len(small.triangles) <= len(model.triangles) // 4

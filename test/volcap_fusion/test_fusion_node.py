@@ -19,7 +19,8 @@ from volcap_bringup.processes import start_node
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration, CameraCalibration, StudioFrame
 from volcap_core.color import delta_e2000
-from volcap_core.conversions import GLTF_IN_STUDIO, camera_model_to_info, numpy_to_image, pose_to_matrix
+from volcap_core.conversions import camera_model_to_info, numpy_to_image, pose_to_matrix
+from volcap_core.gltf_marker import GLTF_IN_STUDIO
 from volcap_core.poses import invert
 from volcap_fusion.glb import decode_glb
 from volcap_fusion.sequence import read_manifest, read_ply

@@ -9,7 +9,7 @@ from sensor_msgs.msg import Image
 
 from volcap_calib.board import BoardConfig
 from volcap_core import topics
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.conversions import camera_info_to_model, image_to_numpy, stamp_to_ns
 from volcap_core.poses import invert, transform_points
 from volcap_studio.session import GroundTruth, synthesize

@@ -57,7 +57,7 @@ def cmd_import_k4a(args) -> int:
 
 
 def cmd_info(args) -> int:
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     with BagReader(args.bag) as bag:
         counts = bag.topic_counts
         readable = None if args.quick else bag.verify()
@@ -74,7 +74,7 @@ def cmd_info(args) -> int:
 
 
 def cmd_bag_recover(args) -> int:
-    from volcap_core.bag_io import recover
+    from volcap_core.bag_recovery import recover
     result = recover(args.bag, args.out, args.compression)
     print(f'wrote {args.out}: {result.messages} messages')
     print(f'lost: {result.damage}' if result.damage else f'{args.bag} was whole: nothing lost')

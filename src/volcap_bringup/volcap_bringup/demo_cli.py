@@ -21,7 +21,7 @@ def cmd_demo(args) -> int:
     from volcap_color import neural
     from volcap_color.config import HarmoniseConfig
     from volcap_color.correspondence import cameras_in
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     from volcap_core.calibration import Calibration
     from volcap_core.files import write_json
     from volcap_eval.color import ColorEvalConfig

@@ -19,7 +19,7 @@ import numpy as np
 import psutil
 
 from volcap_core import topics
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.errors import BadInput
 from volcap_core.frames import camera_topics, read_rig

@@ -14,7 +14,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
 
 from volcap_core import qos, topics
-from volcap_core.conversions import cdr_stamp_ns, diagnostic_array, diagnostic_status, stamp_to_ns
+from volcap_core.cdr import cdr_stamp_ns
+from volcap_core.conversions import stamp_to_ns
+from volcap_core.diagnostics import diagnostic_array, diagnostic_status
 from volcap_core.health import RigHealth
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
 

@@ -29,7 +29,8 @@ from visualization_msgs.msg import Marker
 
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
-from volcap_core.conversions import cdr_stamp_ns, color_message_to_rgb, image_to_numpy
+from volcap_core.cdr import cdr_stamp_ns
+from volcap_core.conversions import color_message_to_rgb, image_to_numpy
 from volcap_core.ros import Diagnostics
 
 

@@ -11,7 +11,7 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from visualization_msgs.msg import Marker
 
 from volcap_core import qos, topics
-from volcap_core.conversions import cdr_stamp_ns
+from volcap_core.cdr import cdr_stamp_ns
 from volcap_core.sync import DEFAULT_PERIOD_NS, tolerance_for_period
 
 

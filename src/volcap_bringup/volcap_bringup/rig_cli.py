@@ -23,7 +23,7 @@ def _named(spec: str, option: str) -> tuple[str, str]:
 
 
 def cmd_rig(args) -> int:
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     from volcap_core.files import atomic_write
     from volcap_core.frames import read_rig
     from volcap_core.rig import Rig, rig_camera_from_k4a, rig_camera_from_orbbec

@@ -17,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from volcap_core import topics
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.errors import BadInput
 from volcap_core.files import write_json

@@ -40,7 +40,8 @@ from .studio_frame import fit_studio_frame
 
 
 @dataclass
-class CameraFrame:
+class BoardView:
+    """One camera's image of the board (and its depth, for the depth-to-plane residuals and the floor)."""
     color: np.ndarray                  # (H, W, 3) uint8 RGB
     color_model: CameraModel
     depth: np.ndarray | None = None    # (h, w) float32 metres, depth camera geometry
@@ -101,10 +102,10 @@ class Calibrator:
         self.patch_pixels: dict[str, list[np.ndarray]] = {c: [] for c in rig.names}
         self.models: dict[str, CameraModel] = {}
         self.views = 0
-        self.floor_depth: dict[str, CameraFrame] = {}   # latest frame with depth per camera, for the floor
+        self.floor_depth: dict[str, BoardView] = {}   # latest frame with depth per camera, for the floor
         self._grid_region = (0.0, 0.0, *board.grid_size)   # depth is sampled on the ChArUco grid
 
-    def add(self, view: int, frames: dict[str, CameraFrame]) -> dict[str, str]:
+    def add(self, view: int, frames: dict[str, BoardView]) -> dict[str, str]:
         """Detect and pose the board in one frame set; returns each camera's outcome in words."""
         self.views += 1
         status = {}
@@ -121,7 +122,7 @@ class Calibrator:
                 status[name] = str(e)
         return status
 
-    def _add_camera(self, view: int, name: str, frame: CameraFrame) -> str:
+    def _add_camera(self, view: int, name: str, frame: BoardView) -> str:
         model = frame.color_model
         if frame.color.shape[:2] != (model.height, model.width):
             raise BadInput(f'colour image is {frame.color.shape[1]}x{frame.color.shape[0]}, camera_info says '

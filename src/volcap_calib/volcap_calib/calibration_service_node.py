@@ -39,13 +39,13 @@ from volcap_core.conversions import (
     matrix_to_pose,
     stamp_to_ns,
 )
-from volcap_core.rig import Rig, RigCamera
+from volcap_core.rig_source import RigResolver
 from volcap_core.ros import Diagnostics, StaticTransformListener, declare_config, run_node, subscribe_color
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
 from .board import BoardConfig
-from .calibrate import CameraFrame
+from .calibrate import BoardView
 from .extrinsics import CalibrationError
 from .session import CalibrationServiceConfig, CalibrationSession
 
@@ -67,7 +67,7 @@ class CalibrationService(Node):
                                          tolerance_ns=tolerance_ns_from_ms(cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
         self.infos: dict[tuple[str, str], CameraInfo] = {}
-        self.rig_source = 'camera_info + /tf_static'   # until a rig file or /volcap/rig says otherwise
+        self.rigs = RigResolver(self.cameras, cfg.tf_prefix)
         self.phase = None
         self.coverage_summary = ''
         self.worker = DropOldestWorker(self._detect, cfg.queue_size, 'board-detection',
@@ -76,9 +76,10 @@ class CalibrationService(Node):
         self.pub_calibration = self.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
         self.pub_poses = self.create_publisher(PoseArray, '/' + topics.CAMERA_POSES, qos.LATCHED)
         if cfg.rig_file:
-            self._set_rig(cfg.rig_file, lambda: Rig.from_yaml(Path(cfg.rig_file).read_text()))
+            self._set_rig(cfg.rig_file, lambda: self.rigs.set_file(cfg.rig_file))
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
-        self.tf = StaticTransformListener(self, self.diagnostics)
+        self.tf = StaticTransformListener(self, self.diagnostics, lambda: self._set_rig('/tf_static', self.rigs.refresh))
+        self.rigs.transforms = self.tf.transforms
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         self.create_service(Trigger, '/' + topics.CALIBRATE, self._on_calibrate)
         for cam in self.cameras:
@@ -105,53 +106,35 @@ class CalibrationService(Node):
 
     # inputs -----------------------------------------------------------------------------------
     def _on_rig(self, msg: String) -> None:
-        if self.rig_source.startswith('rig file'):
-            return   # the operator's file wins over a rig replayed from a bag
-        self._set_rig(f'/{topics.RIG}', lambda: Rig.from_yaml(msg.data))
+        self._set_rig(f'/{topics.RIG}', lambda: self.rigs.offer_description(msg.data))
 
-    def _set_rig(self, source: str, load) -> None:
+    def _set_rig(self, source: str, resolve) -> None:
+        """``resolve()``: the rig the resolver chose from what just arrived from ``source`` (None:
+        nothing changed; a rig file wins over /volcap/rig, which wins over camera_info +
+        /tf_static)."""
         try:
-            warning = self.session.set_rig(load())
+            rig = resolve()
+            warning = self.session.set_rig(rig) if rig is not None else None
         except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError) as e:
             self.diagnostics.report('error', f'unusable rig description from {source}: {e}')
             return
-        self.rig_source = source if source.startswith('/') or source.startswith('camera_info') else f'rig file {source}'
+        if self.rigs.waiting:
+            self.diagnostics.report('warn', 'no depth-to-colour extrinsic on /tf_static yet for '
+                                    + ', '.join(self.rigs.waiting))
+        if rig is None:
+            return
         self.worker.poke()
         if warning:
             self.diagnostics.report('warn', warning)
         names = self.session.rig.names
-        self.get_logger().info(f'calibrating {len(names)} cameras ({self.rig_source}): {", ".join(names)}')
-
-    def _assemble_rig(self) -> None:
-        """Without a rig file or /volcap/rig: the cameras whose camera_info (and, for native depth,
-        /tf_static extrinsic) have arrived. The rig grows as cameras appear."""
-        if not self.rig_source.startswith('camera_info'):
-            return
-        cameras, waiting = [], []
-        for cam in self.cameras:
-            info_c, info_d = self.infos.get((cam, 'color')), self.infos.get((cam, 'depth'))
-            if info_c is None or info_d is None:
-                continue
-            T = self.tf.transforms.depth_to_color(info_c.header.frame_id, info_d.header.frame_id,
-                                                      self.session.cfg.tf_prefix)
-            if T is None:
-                waiting.append(f'{cam} ({info_d.header.frame_id} -> {info_c.header.frame_id})')
-                continue
-            try:
-                cameras.append(RigCamera(cam, camera_info_to_model(info_c), camera_info_to_model(info_d), T))
-            except (MessageConversionError, ValueError) as e:
-                waiting.append(f'{cam} ({e})')
-        if waiting:
-            self.diagnostics.report('warn', 'no depth-to-colour extrinsic on /tf_static yet for ' + ', '.join(waiting))
-        current = self.session.rig.names if self.session.rig else []
-        if cameras and [c.name for c in cameras] != current and len(cameras) >= len(current):
-            self._set_rig('camera_info + /tf_static', lambda: Rig(cameras, 'tf_static'))
+        self.get_logger().info(f'calibrating {len(names)} cameras ({self.rigs.source}): {", ".join(names)}')
 
     def _on_info(self, msg: CameraInfo, camera: str, stream: str) -> None:
         known = (camera, stream) in self.infos
         self.infos[(camera, stream)] = msg
         if not known:
-            self._assemble_rig()
+            self._set_rig(f'{camera} camera_info', lambda: self.rigs.add_camera_info(
+                camera, stream, camera_info_to_model(msg), msg.header.frame_id))
 
     def _on_phase(self, msg: String) -> None:
         self.phase = topics.parse_phase(msg.data)
@@ -175,7 +158,7 @@ class CalibrationService(Node):
                 continue
             has_depth = depth is not None and info_d is not None
             try:
-                frames[cam] = CameraFrame(color_message_to_rgb(color), camera_info_to_model(info_c),
+                frames[cam] = BoardView(color_message_to_rgb(color), camera_info_to_model(info_c),
                                           depth_to_metres(depth) if has_depth else None,
                                           camera_info_to_model(info_d) if has_depth else None)
             except (MessageConversionError, ValueError) as e:

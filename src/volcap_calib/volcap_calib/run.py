@@ -12,7 +12,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write
@@ -20,7 +20,7 @@ from volcap_core.frames import frame_sets, read_rig
 from volcap_core.topics import CALIBRATION_PHASE, CAPTURE, PHASE
 
 from .board import BoardConfig
-from .calibrate import CalibrationOutcome, Calibrator, CameraFrame
+from .calibrate import BoardView, CalibrationOutcome, Calibrator
 from .config import CalibrateConfig, CalibrationConfig  # noqa: F401 (CalibrateConfig re-exported)
 from .extrinsics import depth_points
 from .icp import refine_with_icp
@@ -43,7 +43,7 @@ def calibrator_from_bag(bag: str | Path, board: BoardConfig, cfg: CalibrationCon
     sets = frame_sets(bag, phases=None if all_frames else (CALIBRATION_PHASE,))
     bar = tqdm(sets, desc='board views', unit='set', disable=not progress)
     for fs in bar:
-        status = calibrator.add(fs.index, {n: CameraFrame(f.color, f.color_model, f.depth, f.depth_model)
+        status = calibrator.add(fs.index, {n: BoardView(f.color, f.color_model, f.depth, f.depth_model)
                                            for n, f in fs.cameras.items()})
         bar.set_postfix(seen=sum('corners' in s for s in status.values()), observations=len(calibrator.observations))
     if calibrator.views == 0:

@@ -15,7 +15,7 @@ from volcap_core.settings import color_transport_setting, setting, tf_prefix_set
 from volcap_core.topics import CALIBRATION_PHASE, camera_names
 
 from .board import BoardConfig
-from .calibrate import Calibrator, CameraFrame
+from .calibrate import BoardView, Calibrator
 from .config import CalibrationConfig
 from .coverage import Coverage
 
@@ -82,7 +82,7 @@ class CalibrationSession:
     def ready(self) -> bool:
         return self.calibrator is not None
 
-    def add(self, frames: dict[str, CameraFrame]) -> None:
+    def add(self, frames: dict[str, BoardView]) -> None:
         """One frame set's cameras (board detection happens here)."""
         with self._lock:
             if self.calibrator is not None and frames:

@@ -28,7 +28,8 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
 from volcap_core import qos, topics
-from volcap_core.conversions import MessageConversionError, color_message_to_rgb, image_to_cdr, stamp_to_ns
+from volcap_core.cdr import image_to_cdr
+from volcap_core.conversions import MessageConversionError, color_message_to_rgb, stamp_to_ns
 from volcap_core.ros import AdmissionListener, Diagnostics, color_message_type, declare_config, run_node, subscribe_color
 from volcap_core.settings import color_transport_setting, setting
 

@@ -1,4 +1,5 @@
-"""ROS message <-> numpy conversions (the one core module that imports message types).
+"""ROS message <-> numpy conversions: images, camera_info, point clouds, transforms and poses
+(with ``cdr``, ``diagnostics`` and ``gltf_marker``, the core modules that import message types).
 
 Images honour ``step`` (row padding) and ``is_bigendian``; unknown encodings, short buffers and
 inconsistent sizes raise ``MessageConversionError`` with the reason. Conversions from
@@ -6,19 +7,16 @@ messages return views on the message buffer where the layout allows (no copy).
 """
 from __future__ import annotations
 
-import struct
 import sys
 
 import cv2
 import numpy as np
 import pointcloud2
 from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose, TransformStamped
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
-from visualization_msgs.msg import Marker, MeshFile
 
 from .camera import DISTORTION_MODELS, CameraModel
 from .errors import BadInput
@@ -44,20 +42,6 @@ def ns_to_stamp(ns: int) -> Time:
 
 def stamp_to_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def cdr_stamp_format(data: bytes) -> str:
-    # 4-byte CDR encapsulation header (byte 1: little-endian flag), then stamp.sec (int32) and
-    # stamp.nanosec (uint32) of the leading std_msgs/Header.
-    if len(data) < 12 or data[0] != 0:
-        raise BadInput('not a CDR-encapsulated message')
-    return '<iI' if data[1] & 1 else '>iI'
-
-
-def cdr_stamp_ns(data: bytes) -> int:
-    """header.stamp of a CDR message whose first field is a std_msgs/Header, without decoding."""
-    sec, nsec = struct.unpack_from(cdr_stamp_format(data), data, 4)
-    return sec * 1_000_000_000 + nsec
 
 
 def make_header(stamp_ns: int, frame_id: str) -> Header:
@@ -283,132 +267,3 @@ def matrix_to_pose(T: np.ndarray) -> Pose:
     return pose
 
 
-LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN, 'error': DiagnosticStatus.ERROR,
-          'stale': DiagnosticStatus.STALE}
-
-
-def diagnostic_status(name: str, level: str, message: str, values: dict | None = None,
-                      hardware_id: str = '') -> DiagnosticStatus:
-    return DiagnosticStatus(level=LEVELS[level], name=name, message=message, hardware_id=hardware_id,
-                            values=[KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()])
-
-
-def diagnostic_array(statuses: list[DiagnosticStatus], stamp_ns: int) -> DiagnosticArray:
-    return DiagnosticArray(header=make_header(stamp_ns, ''), status=statuses)
-
-
-class _CdrWriter:
-    """Little-endian CDR (XCDR1, the ROS 2 default) with alignment counted from the payload start."""
-
-    def __init__(self):
-        self.parts, self.size = [b'\x00\x01\x00\x00'], 0
-
-    def _align(self, n: int) -> None:
-        pad = -self.size % n
-        if pad:
-            self._raw(b'\x00' * pad)
-
-    def _raw(self, data: bytes) -> None:
-        self.parts.append(data)
-        self.size += len(data)
-
-    def scalars(self, fmt: str, *values) -> None:
-        data = np.array(values, dtype=fmt)
-        self._align(data.itemsize)
-        self._raw(data.tobytes())
-
-    def string(self, text: str) -> None:
-        data = text.encode() + b'\x00'
-        self.scalars('<u4', len(data))
-        self._raw(data)
-
-    def sequence(self, array: np.ndarray, align: int) -> None:
-        """A sequence of fixed-size elements, one per row of ``array`` (already little-endian)."""
-        self.scalars('<u4', len(array))
-        if len(array):
-            self._align(align)
-            self._raw(np.ascontiguousarray(array).tobytes())
-
-    def header(self, stamp_ns: int, frame_id: str) -> None:
-        self.scalars('<i4', stamp_ns // 1_000_000_000)
-        self.scalars('<u4', stamp_ns % 1_000_000_000)
-        self.string(frame_id)
-
-    def bytes(self) -> bytes:
-        return b''.join(self.parts)
-
-
-def image_to_cdr(arr: np.ndarray, encoding: str, stamp_ns: int = 0, frame_id: str = '') -> bytes:
-    """A serialised sensor_msgs/Image, for ``Publisher.publish(bytes)``: the same checks as
-    ``numpy_to_image``, without rclpy's serialisation of the message (2.3 ms for 1280x720 rgb8,
-    bench/live.py)."""
-    msg = numpy_to_image(arr[:1], encoding)       # validates encoding, dtype and shape cheaply
-    h, w = arr.shape[:2]
-    step = msg.step
-    writer = _CdrWriter()
-    writer.header(stamp_ns, frame_id)
-    writer.scalars('<u4', h, w)
-    writer.string(encoding)
-    writer.scalars('u1', int(sys.byteorder == 'big'))
-    writer.scalars('<u4', step)
-    writer.scalars('<u4', h * step)
-    writer._raw(np.ascontiguousarray(arr).data)
-    return writer.bytes()
-
-
-def mesh_to_marker_cdr(vertices: np.ndarray, colors: np.ndarray, triangles: np.ndarray, stamp_ns: int,
-                       frame_id: str, ns: str = 'volcap', marker_id: int = 0) -> bytes:
-    """A serialised visualization_msgs/Marker TRIANGLE_LIST (three points per triangle, one
-    colour per point), for ``Publisher.publish(bytes)``. Built from arrays directly: a Marker of
-    a million geometry_msgs/Point objects takes seconds to fill from Python."""
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or colors.shape != vertices.shape or triangles.ndim != 2 \
-            or triangles.shape[1] != 3:
-        raise MessageConversionError(f'mesh needs (N, 3) vertices and colours and (M, 3) triangles, got '
-                                     f'{vertices.shape}, {colors.shape}, {triangles.shape}')
-    corners = triangles.reshape(-1)
-    points = vertices[corners].astype('<f8')
-    rgba = np.empty((len(corners), 4), '<f4')
-    rgba[:, :3] = colors[corners] / np.float32(255.0)
-    rgba[:, 3] = 1.0
-    w = _CdrWriter()
-    w.header(stamp_ns, frame_id)
-    w.string(ns)
-    w.scalars('<i4', marker_id, 11, 0)                      # id, TRIANGLE_LIST, ADD
-    w.scalars('<f8', 0, 0, 0, 0, 0, 0, 1)                   # pose: identity
-    w.scalars('<f8', 1, 1, 1)                               # scale
-    w.scalars('<f4', 1, 1, 1, 1)                            # colour (the per-point colours apply)
-    w.scalars('<i4', 0)                                     # lifetime: forever
-    w.scalars('<u4', 0)
-    w.scalars('u1', 0)                                      # frame_locked
-    w.sequence(points, 8)
-    w.sequence(rgba, 4)
-    w.string('')                                            # texture_resource
-    w.header(0, '')                                         # texture: empty CompressedImage
-    w.string('')
-    w.sequence(np.zeros(0, np.uint8), 1)
-    w.sequence(np.zeros((0, 2), '<f4'), 4)                  # uv_coordinates
-    w.string('')                                            # text
-    w.string('')                                            # mesh_resource
-    w.string('')                                            # mesh_file: filename, data
-    w.sequence(np.zeros(0, np.uint8), 1)
-    w.scalars('u1', 0)                                      # mesh_use_embedded_materials
-    return w.bytes()
-
-
-# glTF meshes are +Y up with the front towards +Z; the studio frame is REP 103 (+Z up, +X front).
-# This rotation takes glTF coordinates (gx, gy, gz) to the studio's (gz, gx, gy).
-GLTF_IN_STUDIO = np.array([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], float)
-
-
-def glb_marker(glb: bytes, stamp_ns: int, frame_id: str, name: str, ns: str = 'volcap', marker_id: int = 0
-               ) -> Marker:
-    """A visualization_msgs/Marker MESH_RESOURCE carrying a GLB in ``mesh_file`` (Jazzy's embedded
-    mesh: ``mesh_resource`` is ``embedded://<name>``). The pose turns the GLB's +Y-up axes into
-    the (+Z-up) ``frame_id``, so a renderer that applies it, as RViz does, shows the mesh upright."""
-    marker = Marker(header=make_header(stamp_ns, frame_id), ns=ns, id=marker_id, type=Marker.MESH_RESOURCE,
-                    action=Marker.ADD, pose=matrix_to_pose(GLTF_IN_STUDIO), mesh_resource=f'embedded://{name}',
-                    mesh_use_embedded_materials=True)
-    marker.scale.x = marker.scale.y = marker.scale.z = 1.0
-    marker.color.a = 1.0
-    marker.mesh_file = MeshFile(filename=name, data=glb)
-    return marker

@@ -21,18 +21,13 @@ import numpy as np
 
 from volcap_core import topics
 from volcap_core.camera import CameraModel
-from volcap_core.conversions import (
-    camera_info_to_model,
-    color_message_to_rgb,
-    depth_to_metres,
-    stamp_to_ns,
-    tf_message_to_transforms,
-)
-from volcap_core.rig import Rig, RigCamera
+from volcap_core.conversions import camera_info_to_model, color_message_to_rgb, depth_to_metres, stamp_to_ns, tf_message_to_transforms
+from volcap_core.rig import Rig
+from volcap_core.rig_source import RigResolver
 from volcap_core.sync import FrameSetSynchronizer
-from volcap_core.tf import StaticTransforms
 
-from .bag_io import BagError, BagReader
+from .bag_io import BagError
+from .bag_reader import BagReader
 
 STREAMS = ('color', 'color_info', 'depth', 'depth_info')
 
@@ -87,47 +82,49 @@ class BagFrameSet:
 
 
 def read_rig(reader: BagReader) -> Rig:
-    """The bag's rig: ``volcap/rig``, else ``rig.yaml`` beside the bag's files, else assembled from
-    the first camera_info of each camera and the depth-to-colour transforms on ``/tf_static``."""
-    for msg in reader.messages([topics.RIG]):
-        return Rig.from_yaml(msg.decode().data)
+    """The bag's rig by the one rule (``volcap_core.rig_source``): ``rig.yaml`` beside the bag's
+    files (a rig file), else ``volcap/rig``, else assembled from the first camera_info of each
+    camera and the depth-to-colour transforms on ``/tf_static``."""
     sidecar = reader.path / RIG_SIDECAR
     if sidecar.exists():
         try:
-            return Rig.from_yaml(sidecar.read_text())
+            return RigResolver().set_file(sidecar)
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise BagError(f'{sidecar} is not a usable rig description: {e}') from e
+    for msg in reader.messages([topics.RIG]):
+        return RigResolver().offer_description(msg.decode().data)
     cams = camera_topics(reader)
     if not cams:
         raise BagError(f'{reader.path} has no rig description on {topics.RIG}, no {RIG_SIDECAR}, and no camera '
                        'namespace with colour and depth topics')
-    tf = StaticTransforms()
-    infos: dict[str, object] = {}
+    resolver = RigResolver(list(cams))
     wanted = {cams[c][s]: (c, s) for c in cams for s in ('color_info', 'depth_info')}
+    seen: set[tuple[str, str]] = set()
     complete_at = None
     for m in reader.messages([topics.TF_STATIC, *wanted]):
         if m.topic == topics.TF_STATIC:
             for parent, child, T in tf_message_to_transforms(m.decode()):
-                tf.add(parent, child, T)
-        elif wanted[m.topic] not in infos:
-            infos[wanted[m.topic]] = m.decode()
-        if len(infos) == len(wanted):
+                resolver.add_transform(parent, child, T)
+        elif wanted[m.topic] not in seen:
+            seen.add(wanted[m.topic])
+            cam, stream = wanted[m.topic]
+            info = m.decode()
+            resolver.add_camera_info(cam, stream.removesuffix('_info'), camera_info_to_model(info),
+                                     info.header.frame_id)
+        if len(seen) == len(wanted):
             complete_at = m.stamp_ns if complete_at is None else complete_at
             # the drivers' latched /tf_static lands at the start of a recording: a second more will do
             if topics.TF_STATIC not in reader.topics or m.stamp_ns - complete_at > 1_000_000_000:
                 break
-    rig_cameras = []
     for cam in cams:
-        color, depth = infos.get((cam, 'color_info')), infos.get((cam, 'depth_info'))
+        color, depth = resolver.infos.get((cam, 'color')), resolver.infos.get((cam, 'depth'))
         if color is None or depth is None:
             raise BagError(f'{reader.path}: camera {cam} has no camera_info messages')
-        T = tf.depth_to_color(color.header.frame_id, depth.header.frame_id)
-        if T is None:
+        if resolver.extrinsic(cam) is None:
             raise BagError(f'{reader.path}: no depth-to-colour extrinsic for {cam}: no /tf_static chain from '
-                           f'{depth.header.frame_id!r} to {color.header.frame_id!r} and no {topics.RIG}; write one '
+                           f'{depth[1]!r} to {color[1]!r} and no {topics.RIG}; write one '
                            f'with `volcap rig ... --out {sidecar}`')
-        rig_cameras.append(RigCamera(cam, camera_info_to_model(color), camera_info_to_model(depth), T))
-    return Rig(rig_cameras, name=reader.path.name)
+    return Rig(resolver.rig.cameras, name=reader.path.name)
 
 
 def frame_sets(path: str | Path, phases: tuple[str, ...] | None = None, tolerance_ns: int | None = None,

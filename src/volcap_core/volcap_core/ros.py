@@ -26,7 +26,9 @@ from tf2_msgs.msg import TFMessage
 
 from . import qos, settings, topics, transport
 from .admission import Admission, AdmissionRule
-from .conversions import cdr_stamp_ns, diagnostic_array, diagnostic_status, tf_message_to_transforms
+from .cdr import cdr_stamp_ns
+from .conversions import tf_message_to_transforms
+from .diagnostics import diagnostic_array, diagnostic_status
 from .errors import BadInput
 from .tf import StaticTransforms
 

@@ -18,7 +18,8 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 
 from volcap_core import qos, topics
-from volcap_core.bag_io import BagError, BagReader, message_class
+from volcap_core.bag_io import BagError, message_class
+from volcap_core.bag_reader import BagReader
 from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.sync import DEFAULT_PERIOD_NS, PeriodEstimate
 

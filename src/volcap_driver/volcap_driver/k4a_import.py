@@ -19,7 +19,7 @@ from std_msgs.msg import String
 from tqdm import tqdm
 
 from volcap_core import topics
-from volcap_core.bag_io import BagWriter
+from volcap_core.bag_writer import BagWriter
 from volcap_core.conversions import camera_model_to_info, numpy_to_image
 from volcap_core.errors import BadInput
 from volcap_core.rig import Rig, rig_camera_from_k4a

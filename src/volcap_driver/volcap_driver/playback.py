@@ -4,7 +4,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from volcap_core.conversions import cdr_stamp_format
+from volcap_core.cdr import cdr_stamp_format
 from volcap_core.errors import BadInput
 from volcap_core.settings import setting
 

@@ -7,7 +7,7 @@ Topics are discovered as publishers appear; each is subscribed with the QoS its 
 offer (reliable / transient-local when all of them are), as rosbag2 does. The bag is closed
 (metadata written) on Ctrl-C, SIGTERM or after ``max_duration``.
 
-Files (``volcap_core.bag_io.BagWriter``): CRC-checked chunks of ``chunk_size`` bytes written
+Files (``volcap_core.bag_writer.BagWriter``): CRC-checked chunks of ``chunk_size`` bytes written
 without copying the frames, so one host records 8 cameras at 30 fps (``bench/record.py``); a
 new file every ``max_bagfile_size`` bytes or ``max_bagfile_duration`` seconds, as ``ros2 bag
 record`` splits. After a crash or ``kill -9`` every closed file is whole and listed in
@@ -23,7 +23,8 @@ from dataclasses import dataclass
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from volcap_core.bag_io import COMPRESSIONS, BagError, BagWriter, QueuedBagWriter, message_class
+from volcap_core.bag_io import COMPRESSIONS, BagError, message_class
+from volcap_core.bag_writer import BagWriter, QueuedBagWriter
 from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.settings import setting
 

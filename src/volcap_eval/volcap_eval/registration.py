@@ -55,7 +55,7 @@ def edge_offsets(rgb: np.ndarray, registered: np.ndarray) -> dict:
 
 def check_registration(bag: str | Path, overlay: Path, camera: str | None = None) -> dict:
     """Register the first frame of ``camera`` at full colour resolution and measure edge offsets."""
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     from volcap_core.frames import read_rig
     with BagReader(bag) as reader:
         rig = read_rig(reader)

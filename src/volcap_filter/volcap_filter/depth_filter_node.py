@@ -29,17 +29,18 @@ from std_srvs.srv import Trigger
 
 from volcap_core import qos, topics
 from volcap_core.camera import depth_to_millimetres
+from volcap_core.cdr import image_to_cdr
 from volcap_core.conversions import (
     MessageConversionError,
     camera_info_to_model,
     camera_model_to_info,
     color_message_to_rgb,
     depth_to_metres,
-    image_to_cdr,
     points_to_pointcloud2,
     stamp_to_ns,
 )
 from volcap_core.rig import Rig
+from volcap_core.rig_source import RigResolver
 from volcap_core.ros import (
     AdmissionListener,
     Diagnostics,
@@ -82,7 +83,6 @@ class DepthFilter(Node):
         self.sync = FrameSetSynchronizer([self.camera], ('color', 'depth'),
                                          tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
-        self.info_frames: dict[str, str] = {}     # stream -> camera_info frame id
         self.figures_requested = False
         self.processed = self.skipped = 0
         self.empty_streak = 0      # consecutive cleaned frames with no depth left
@@ -91,10 +91,12 @@ class DepthFilter(Node):
 
         # Created before the image subscriptions: the executor serves ready subscriptions in
         # creation order, so a phase change or camera_info sent with a frame is seen before it.
+        self.rigs = RigResolver([self.camera], self.node_cfg.tf_prefix)
         if self.node_cfg.rig_file:
             self._load_rig_file(self.node_cfg.rig_file)
         self.create_subscription(String, '/' + topics.RIG, self._on_rig, qos.LATCHED)
-        self.tf = StaticTransformListener(self, self.diagnostics, self._look_up_extrinsic)
+        self.tf = StaticTransformListener(self, self.diagnostics, lambda: self._use_rig(self.rigs.refresh()))
+        self.rigs.transforms = self.tf.transforms
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
         self.admission = AdmissionListener(self, self.diagnostics)
         inputs = qos.EVERY_FRAME if self.node_cfg.reliable else qos.CAMERA
@@ -120,29 +122,21 @@ class DepthFilter(Node):
     # inputs -------------------------------------------------------------------------------
     def _load_rig_file(self, path: str) -> None:
         try:
-            self._handle(self.session.set_rig(Rig.from_yaml(Path(path).read_text())))
-            self.get_logger().info(f'depth-to-colour extrinsic from the rig file {path}')
+            self._use_rig(self.rigs.set_file(path))
         except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError) as e:
             self.diagnostics.report('error', f'{self.camera}: unusable rig_file {path}: {e}')
 
     def _on_rig(self, msg: String) -> None:
-        if self.node_cfg.rig_file:
-            return   # the operator's file wins over a rig replayed from a bag
         try:
-            rig = Rig.from_yaml(msg.data)
-            self._handle(self.session.set_rig(rig))
+            self._use_rig(self.rigs.offer_description(msg.data))   # None: the operator's rig file wins
         except (ValueError, KeyError, TypeError, yaml.YAMLError) as e:
             self.diagnostics.report('error', f'unusable rig description: {e}')
 
-    def _look_up_extrinsic(self) -> None:
-        color, depth = self.info_frames.get('color'), self.info_frames.get('depth')
-        if self.session.rig is not None or color is None or depth is None or color == depth:
-            return
-        T = self.tf.transforms.depth_to_color(color, depth, self.node_cfg.tf_prefix)
-        if T is not None:
-            if self.session.extrinsic is None:
-                self.get_logger().info(f'depth-to-colour extrinsic {depth} -> {color} from /tf_static')
-            self._handle(self.session.set_extrinsic(T))
+    def _use_rig(self, rig: Rig | None) -> None:
+        """A rig the resolver chose (None: nothing changed)."""
+        if rig is not None:
+            self._handle(self.session.set_rig(rig))
+            self.get_logger().info(f'depth-to-colour extrinsic from the {self.rigs.source}')
 
     def _on_phase(self, msg: String) -> None:
         self._handle(self.session.set_phase(topics.parse_phase(msg.data)))
@@ -166,10 +160,9 @@ class DepthFilter(Node):
         except (MessageConversionError, ValueError) as e:
             self.diagnostics.report('error', f'{self.camera}: unusable {stream} camera_info: {e}')
             return
-        if self.info_frames.get(stream) != msg.header.frame_id:
-            self.info_frames[stream] = msg.header.frame_id
-            self._look_up_extrinsic()
+        rig = self.rigs.add_camera_info(self.camera, stream, model, msg.header.frame_id)
         self._handle(self.session.set_model(stream, model))
+        self._use_rig(rig)
 
     def _on_image(self, data: bytes, stream: str, kind) -> None:
         started = time.process_time()

@@ -40,17 +40,10 @@ from visualization_msgs.msg import Marker
 from volcap_core import qos, topics
 from volcap_core.calibration import Calibration
 from volcap_core.camera import depth_to_millimetres
-from volcap_core.conversions import (
-    camera_info_to_model,
-    color_to_rgb,
-    depth_to_metres,
-    glb_marker,
-    image_to_numpy,
-    mesh_to_marker_cdr,
-    points_to_pointcloud2,
-    stamp_to_ns,
-)
+from volcap_core.cdr import mesh_to_marker_cdr
+from volcap_core.conversions import camera_info_to_model, color_to_rgb, depth_to_metres, image_to_numpy, points_to_pointcloud2, stamp_to_ns
 from volcap_core.errors import BadInput
+from volcap_core.gltf_marker import glb_marker
 from volcap_core.health import silent_cameras
 from volcap_core.poses import invert
 from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node

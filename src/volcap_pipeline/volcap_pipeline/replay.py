@@ -16,7 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from volcap_color.correspondence import View
-from volcap_core.bag_io import BagReader
+from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.errors import BadInput
 from volcap_core.frames import BagFrameSet, frame_sets, read_rig

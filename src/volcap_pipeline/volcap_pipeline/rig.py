@@ -35,7 +35,7 @@ def raw_fusion(bag: str | Path, stamp_ns: int, T_world_color: dict[str, np.ndarr
     """The frame set of ``bag`` at ``stamp_ns`` fused as it left the cameras (the "before" of
     paper 000, Figs. 16 and 18): raw depth registered to colour with nothing removed, raw colour.
     ``T_world_color`` places the cameras in the output frame (``on_floor``: the studio frame)."""
-    from volcap_core.bag_io import BagReader
+    from volcap_core.bag_reader import BagReader
     from volcap_core.frames import frame_sets, read_rig
     from volcap_core.topics import CAPTURE
     from volcap_filter.registration import DepthRegistration

@@ -228,7 +228,7 @@ class DepthRender:
     objects: np.ndarray    # int64 object index at each pixel centre, -1 = none
 
 
-class CameraView:
+class CameraRaycast:
     """One camera's rays through a scene split into static objects (rendered once and cached)
     and moving ones (subject, board: cast per frame, kept where nearer than the background)."""
 

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from volcap_calib.board import BoardConfig
 from volcap_core import topics
-from volcap_core.bag_io import BagWriter
+from volcap_core.bag_writer import BagWriter
 from volcap_core.conversions import camera_model_to_info, numpy_to_image
 from volcap_core.errors import BadInput
 from volcap_core.poses import invert, matrix_from_list, matrix_to_list

@@ -25,7 +25,7 @@ from volcap_studio.config import (  # noqa: F401 (re-exported: their home before
     default_k4a_calibration,
     shared_data_dir,
 )
-from volcap_studio.render import CameraView, ColorResponse, DepthRender, SceneRaycaster
+from volcap_studio.render import CameraRaycast, ColorResponse, DepthRender, SceneRaycaster
 
 PHASE_GAP_NS = 1_000_000_000
 START_NS = 1_700_000_000_000_000_000
@@ -41,7 +41,7 @@ class FramePlan:
 
 
 @dataclass
-class CameraFrame:
+class RenderedFrame:
     color: np.ndarray
     depth: DepthRender
     color_subject: np.ndarray   # bool: colour pixel centre sees the subject
@@ -147,9 +147,9 @@ class StudioRenderer:
         self.board = sc.board_object(board)
         self.lights, self.ambient = sc.studio_lights()
         static = SceneRaycaster(self.background)
-        self.color_views = {c.name: CameraView(static, c.color, T_studio_color[c.name], c.color.pixel_rays())
+        self.color_views = {c.name: CameraRaycast(static, c.color, T_studio_color[c.name], c.color.pixel_rays())
                             for c in rig.cameras}
-        self.depth_views = {c.name: CameraView(static, c.depth, self.T_studio_depth[c.name], c.depth.pixel_rays())
+        self.depth_views = {c.name: CameraRaycast(static, c.depth, self.T_studio_depth[c.name], c.depth.pixel_rays())
                             for c in rig.cameras}
 
     def moving_objects(self, plan: FramePlan) -> list[sc.SceneObject]:
@@ -162,7 +162,7 @@ class StudioRenderer:
             objects.append(self.board)
         return objects
 
-    def render(self, plan: FramePlan) -> dict[str, CameraFrame]:
+    def render(self, plan: FramePlan) -> dict[str, RenderedFrame]:
         moving = self.moving_objects(plan)
         dynamic = SceneRaycaster(moving, first_index=len(self.background)) if moving else None
         full = SceneRaycaster(self.background + moving)
@@ -176,7 +176,7 @@ class StudioRenderer:
                                                          self.rng)
             depth = self.depth_views[n].depth(dynamic, full, self.cfg.tof, self.rng)
             stamp = plan.stamp_ns + int(np.clip(self.rng.normal(0, jitter), -3 * jitter, 3 * jitter))
-            out[n] = CameraFrame(color, depth, is_subject[color_obj], is_subject[depth.objects],
+            out[n] = RenderedFrame(color, depth, is_subject[color_obj], is_subject[depth.objects],
                                  stamp, stamp + int(self.rng.normal(0, 0.1e6)))
         return out
 

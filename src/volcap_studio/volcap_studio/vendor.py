@@ -25,14 +25,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from volcap_core.bag_io import BagReader, BagWriter
+from volcap_core.bag_reader import BagReader
+from volcap_core.bag_writer import BagWriter
 from volcap_core.camera import CameraModel
-from volcap_core.conversions import (
-    camera_model_to_info,
-    numpy_to_image,
-    rgb_to_compressed,
-    transforms_to_tf_message,
-)
+from volcap_core.conversions import camera_model_to_info, numpy_to_image, rgb_to_compressed, transforms_to_tf_message
 from volcap_core.errors import BadInput
 from volcap_core.frames import frame_sets, read_rig
 from volcap_core.poses import invert, make_transform
