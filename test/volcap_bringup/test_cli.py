@@ -1,4 +1,5 @@
 """The `volcap` command line: clear errors for bad input, and the info listing."""
+import shutil
 import subprocess
 import sys
 
@@ -38,6 +39,27 @@ def test_synth_info_and_preview(tmp_path, shared_data):
     run = volcap('info', tmp_path / 's')
     assert run.returncode == 0
     assert 'cam1/depth/image_raw' in run.stdout and '(latched)' in run.stdout
+    # A copy cut off as a crash leaves it: listed as far as it reads, the loss named, exit 2.
+    cut = tmp_path / 'cut'
+    shutil.copytree(tmp_path / 's', cut)
+    mcap = next(cut.glob('*.mcap'))
+    mcap.write_bytes(mcap.read_bytes()[:mcap.stat().st_size * 2 // 3])
+    run = volcap('info', cut)
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert 'damaged bag' in run.stdout and 'volcap bag recover' in run.stdout and 'cam1/depth/image_raw' in run.stdout
+
+
+def test_a_users_mistake_is_one_line_and_a_bug_is_a_traceback(tmp_path, monkeypatch, capsys):
+    from volcap_bringup import cli
+    assert cli.main(['info', str(tmp_path / 'nothing')]) == 2
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and err.startswith('volcap info: error:') and 'Traceback' not in err
+
+    def broken(args):
+        return {}['a key volcap forgot']      # a bug, not the user's doing
+    monkeypatch.setattr(cli, 'cmd_info', broken)
+    with pytest.raises(KeyError):          # propagates: Python prints the traceback and exits 1
+        cli.main(['info', str(tmp_path)])
 
 
 def test_live_refuses_what_it_cannot_run(tmp_path):

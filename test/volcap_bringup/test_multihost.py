@@ -34,10 +34,9 @@ print(json.dumps(got))
 
 
 @pytest.fixture
-def hosts():
+def hosts(prerequisite):
     """Two network namespaces (capture, fusion) joined by a veth link."""
-    if os.geteuid() != 0 or not shutil.which('ip'):
-        pytest.skip('network namespaces need root and iproute2')
+    prerequisite(os.geteuid() == 0 and shutil.which('ip') is not None, 'network namespaces need root and iproute2')
     tag = str(os.getpid() % 100000)
     names = {'capture': f'vc_cap{tag}', 'fusion': f'vc_fus{tag}'}
     links = {'capture': (f'vc{tag}a', '10.78.0.1'), 'fusion': (f'vc{tag}b', '10.78.0.2')}
@@ -57,7 +56,7 @@ def hosts():
     except subprocess.CalledProcessError as e:
         for ns in names.values():
             subprocess.run(['ip', 'netns', 'del', ns], capture_output=True)
-        pytest.skip(f'cannot make network namespaces here: {e.stderr.decode().strip()}')
+        prerequisite(False, f'cannot make network namespaces here: {e.stderr.decode().strip()}')
 
     def link(up: bool):
         ip('-n', names['capture'], 'link', 'set', links['capture'][0], 'up' if up else 'down')

@@ -69,3 +69,7 @@ def test_a_camera_that_stops_is_named_silent_until_it_returns():
     # Never heard from: counted from the first frame of any camera; nothing heard: nobody silent.
     assert silent_cameras(['a', 'b'], {'a': 0}, 2_000_000_000, period) == {'b': 2.0, 'a': 2.0}
     assert silent_cameras(['a', 'b'], {}, 2_000_000_000, period) == {}
+    # The fusion's rule: silent only while another camera delivers; all quiet together is idle.
+    s = 1_000_000_000
+    assert silent_cameras(['a', 'b'], {'a': 10 * s, 'b': 2 * s}, 10 * s, period, while_others_deliver=True) == {'b': 8.0}
+    assert silent_cameras(['a', 'b'], {'a': 9 * s, 'b': 2 * s}, 10 * s, period, while_others_deliver=True) == {}

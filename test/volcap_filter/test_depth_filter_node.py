@@ -21,7 +21,7 @@ def test_filter_nodes_clean_a_replayed_bag_on_every_camera(studio_bag, ros_conte
     cams = GroundTruth(studio_bag).rig.names
     # The board frames come first and may be all background; the checks are on the capture frames.
     capture_from = min(fs.stamp_ns for fs in frame_sets(studio_bag, phases=(topics.CAPTURE,))) - 5_000_000
-    outputs = [(f'/{c}/{t}', kind, qos.SENSOR) for c in cams
+    outputs = [(f'/{c}/{t}', kind, qos.EVERY_FRAME) for c in cams
                for t, kind in ((topics.DEPTH_CLEAN, Image), (topics.POINTS, PointCloud2))]
     probe = probe_factory(outputs)
 
@@ -187,3 +187,62 @@ def test_parameters_change_while_running_and_invalid_combinations_are_refused(ro
         assert ok.successful and node.node_cfg.publish_points is False
     finally:
         node.destroy_node()
+
+
+def test_an_operator_captures_a_clean_plate_that_is_saved_and_loaded_again(studio_bag, ros_context, procs,
+                                                                             probe_factory, tmp_path):
+    """On a rig nobody announces phases: the operator empties the stage and calls
+    ~/capture_clean_plate; the plate learnt from the next frames is saved to background_file, and
+    a node started later with that file masks the studio from its very first frame."""
+    from std_srvs.srv import Trigger
+
+    from volcap_bringup.processes import stop
+    cam = 'cam1'
+    plate = next(fs for fs in frame_sets(studio_bag, phases=(topics.CLEAN_PLATE,))).cameras[cam]
+    frame = next(fs for fs in frame_sets(studio_bag, phases=(topics.CAPTURE,))).cameras[cam]
+    rig = GroundTruth(studio_bag).rig
+    saved = tmp_path / 'plates' / f'{cam}.npz'
+    saved.parent.mkdir()
+    probe, pubs, rig_pub = _one_camera(ros_context, cam, qos.EVERY_FRAME, probe_factory)
+    color_frame, depth_frame = f'{cam}_color_optical_frame', f'{cam}_depth_optical_frame'
+    stamp = [1_000_000_000]
+
+    def send(f):
+        stamp[0] += 100_000_000
+        pubs[topics.COLOR_INFO].publish(camera_model_to_info(f.color_model, stamp[0], color_frame))
+        pubs[topics.DEPTH_INFO].publish(camera_model_to_info(f.depth_model, stamp[0], depth_frame))
+        pubs[topics.COLOR_IMAGE].publish(numpy_to_image(f.color, 'rgb8', stamp[0], color_frame))
+        pubs[topics.DEPTH_IMAGE].publish(numpy_to_image(depth_to_millimetres(f.depth), '16UC1', stamp[0], depth_frame))
+
+    def cleaned_after(count):
+        assert probe.spin_until(lambda: len(probe.got[f'/{cam}/{topics.DEPTH_CLEAN}']) > count, 30)
+        return image_to_numpy(probe.got[f'/{cam}/{topics.DEPTH_CLEAN}'][-1][1])
+
+    params = {'reliable': True, 'background_file': str(saved), 'clean_plate_frames': 1}
+    try:
+        rig_pub.publish(String(data=rig.to_yaml()))
+        node = start_node('volcap_filter', 'depth_filter', params, namespace=cam)
+        procs.append(node)
+        assert _inputs_matched(probe, pubs) and probe.spin_until(lambda: rig_pub.get_subscription_count(), 30)
+        send(frame)      # no plate yet: everything in range is kept
+        unmasked = np.count_nonzero(cleaned_after(0))
+        client = probe.node.create_client(Trigger, f'/{cam}/depth_filter/capture_clean_plate')
+        assert client.wait_for_service(timeout_sec=30)
+        future = client.call_async(Trigger.Request())
+        assert probe.spin_until(future.done, 30) and future.result().success, future.result()
+        send(plate)      # the empty stage: learnt, not cleaned
+        assert probe.spin_until(saved.exists, 30)
+        send(frame)
+        masked = np.count_nonzero(cleaned_after(1))
+        assert 1000 < masked < 0.5 * unmasked                 # the studio masked out, the subject kept
+        assert stop(node) == 0
+        procs.remove(node)
+
+        count = len(probe.got[f'/{cam}/{topics.DEPTH_CLEAN}'])
+        procs.append(start_node('volcap_filter', 'depth_filter', params, namespace=cam))
+        assert _inputs_matched(probe, pubs)
+        send(frame)      # the first frame of the new node is already masked by the saved plate
+        again = np.count_nonzero(cleaned_after(count))
+        assert abs(again - masked) < 0.02 * masked
+    finally:
+        probe.close()

@@ -193,7 +193,8 @@ def test_faults_bad_calibration_silent_camera_and_full_disk(ros_context, procs, 
     assert until(lambda: fused() > before)
     # 2. cam3 goes silent: named at ERROR while it is, then fusion is whole again when it returns.
     since = len(probe.got['/' + topics.DIAGNOSTICS])
-    assert until(lambda: reported(DiagnosticStatus.ERROR, 'silent cameras (no frames): cam3', since), skip=('cam3',))
+    silent = 'silent cameras (no frames while the others deliver): cam3'
+    assert until(lambda: reported(DiagnosticStatus.ERROR, silent, since), skip=('cam3',))
     named = [{kv.key: kv.value for kv in s.values} for s in _diagnostics(probe, since) if 'silent' in s.message]
     assert named[-1]['silent_cameras'] == 'cam3'
     since = len(probe.got['/' + topics.DIAGNOSTICS])

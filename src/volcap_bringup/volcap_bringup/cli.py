@@ -26,7 +26,7 @@ import argparse
 import sys
 import time
 
-from volcap_core.errors import VolcapError
+from volcap_core.errors import BadBag, VolcapError
 from volcap_core.settings import add_arguments, config_from_args
 
 from . import calib_cli, color_cli, demo_cli, eval_cli, fusion_cli, rig_cli
@@ -70,7 +70,8 @@ def cmd_info(args) -> int:
         latched = bag.latched_topics
         for topic, msgtype in sorted(bag.topics.items()):
             print(f'  {topic:<36} {msgtype:<28} {counts.get(topic, 0):6d}{"  (latched)" if topic in latched else ""}')
-    return 1 if readable is not None and bag.damage else 0
+    # what is readable is listed; the damage is the user's to act on (volcap bag recover): exit 2
+    return BadBag.exit_code if readable is not None and bag.damage else 0
 
 
 def cmd_bag_recover(args) -> int:

@@ -48,6 +48,9 @@ class StudioFrame:
             T = rigid_transform(d['T_world_studio'], 'studio: T_world_studio')
         except ValueError as e:
             raise CalibrationFileError(str(e)) from e
+        for key in ('frame', 'source'):
+            if key in d and (not isinstance(d[key], str) or not d[key]):
+                raise CalibrationFileError(f'studio: {key}: expected a name, got {d[key]!r:.40}')
         return cls(T, str(d.get('frame', STUDIO_FRAME)), {k: v for k, v in d.items()
                                                           if k not in ('frame', 'T_world_studio')})
 
@@ -84,6 +87,8 @@ class CameraCalibration:
         except ValueError as e:
             raise CalibrationFileError(str(e)) from e
         views = _number(d.get('views', 0), f'cameras: {name}: views')
+        if 'color_frame' in d and d['color_frame'] is not None and not isinstance(d['color_frame'], str):
+            raise CalibrationFileError(f'cameras: {name}: color_frame: expected a frame name, got {d["color_frame"]!r:.40}')
         color = d.get('colour')
         if color is not None:
             if not isinstance(color, dict):
@@ -152,7 +157,7 @@ class Calibration:
             raise CalibrationFileError(f'not YAML: {e}') from e
         if not isinstance(d, dict) or 'cameras' not in d:
             raise CalibrationFileError('not a volcap calibration (no cameras)')
-        if d.get('version') != VERSION:
+        if isinstance(d.get('version'), bool) or d.get('version') != VERSION:
             raise CalibrationFileError(f'calibration version {d.get("version")!r} is not supported (expected {VERSION})')
         cameras = d['cameras']
         if not isinstance(cameras, dict) or not cameras:
@@ -161,6 +166,12 @@ class Calibration:
         for key in ('reference', 'world_frame'):
             if not isinstance(d.get(key), str) or not d[key]:
                 raise CalibrationFileError(f'{key}: expected a name, got {d.get(key)!r}')
+        if d['reference'] not in cameras:
+            raise CalibrationFileError(f'reference: {d["reference"]!r} is not one of the calibrated cameras '
+                                       f'({", ".join(map(str, cameras))})')
+        for key in ('method', 'created'):
+            if d.get(key) is not None and not isinstance(d[key], str):
+                raise CalibrationFileError(f'{key}: expected text, got {d[key]!r:.40}')
         known = {'version', 'created', 'reference', 'world_frame', 'method', 'cameras'}
         calibration = cls(d['reference'], d['world_frame'],
                           {str(n): CameraCalibration.from_dict(c, str(n)) for n, c in cameras.items()},

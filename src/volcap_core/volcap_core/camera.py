@@ -95,11 +95,22 @@ class CameraModel:
     @classmethod
     def from_dict(cls, d: dict) -> 'CameraModel':
         """Checked: anything but a usable model is a ValueError saying what is wrong."""
+        if not isinstance(d, dict):
+            raise BadInput(f'not a camera model: expected a mapping, got {d!r:.40}')
+        for key in ('width', 'height', 'fx', 'fy', 'cx', 'cy'):
+            if isinstance(d.get(key), bool) or (key in ('width', 'height') and isinstance(d.get(key), float)
+                                                and not float(d[key]).is_integer()):
+                raise BadInput(f'{key}: expected a number of pixels, got {d.get(key)!r}')
+        model = d.get('distortion_model')
         try:
-            return cls(int(d['width']), int(d['height']), float(d['fx']), float(d['fy']),
-                       float(d['cx']), float(d['cy']), tuple(float(v) for v in d.get('D', (0.0,) * 5)))
+            out = cls(int(d['width']), int(d['height']), float(d['fx']), float(d['fy']),
+                      float(d['cx']), float(d['cy']), tuple(float(v) for v in d.get('D', (0.0,) * 5)))
         except (KeyError, TypeError, AttributeError, OverflowError) as e:
             raise BadInput(f'not a camera model ({type(e).__name__}: {e})') from e
+        if model is not None and model != out.distortion_model:
+            raise BadInput(f'distortion_model {model!r:.40} does not match the {len(out.dist)} coefficients of D '
+                           f'(expected {out.distortion_model!r})')
+        return out
 
 
 # Azure Kinect: how each sensor mode crops and scales the factory calibration image.

@@ -155,13 +155,21 @@ class RigHealth:
 
 
 def silent_cameras(cameras: list[str], last_ns: dict[str, int], now_ns: int, period_ns: int | None,
-                   periods: float = 10.0, min_s: float = 0.5) -> dict[str, float]:
+                   periods: float = 10.0, min_s: float = 0.5, while_others_deliver: bool = False
+                   ) -> dict[str, float]:
     """{camera: seconds silent} for the cameras whose last frame (``last_ns``, receive clock) is
     more than ``periods`` frame periods (and ``min_s``) before ``now_ns``. A camera never heard
-    from counts from the first frame of any camera; before any frame, none is silent."""
+    from counts from the first frame of any camera; before any frame, none is silent.
+
+    ``while_others_deliver``: a camera is silent only while frames are expected, that is while
+    another camera still delivers within the limit. When every camera is quiet together the rig
+    is idle (a phase without output, such as the clean plate being learnt; a take that ended),
+    which is nobody's fault (a stage that needs every camera, the fusion, says so)."""
     if not last_ns:
         return {}
     limit = max(periods * (period_ns or DEFAULT_PERIOD_NS), min_s * 1e9)
+    if while_others_deliver and now_ns - max(last_ns.values()) > limit:
+        return {}
     first = min(last_ns.values())
     out = {}
     for cam in cameras:

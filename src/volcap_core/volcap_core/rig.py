@@ -47,7 +47,12 @@ class RigCamera:
         """Checked: a ValueError names the camera and the field that is wrong."""
         if not isinstance(d, dict) or not d.get('name'):
             raise BadInput(f'rig camera: expected a mapping with a name, got {d!r:.80}')
-        name = str(d['name'])
+        if not isinstance(d['name'], str):
+            raise BadInput(f'rig camera: name: expected text, got {d["name"]!r:.40}')
+        name = d['name']
+        serial = d.get('serial')
+        if serial is not None and not isinstance(serial, (str, int)) or isinstance(serial, bool):
+            raise BadInput(f'rig camera {name}: serial: expected text, got {serial!r:.40}')
         models = {}
         for stream in ('color', 'depth'):
             try:
@@ -93,9 +98,12 @@ class Rig:
         if not isinstance(d, dict) or not isinstance(d.get('cameras'), list) or not d['cameras']:
             raise BadInput('rig YAML must be a mapping with a "cameras" list')
         version = d.get('version', RIG_VERSION)
-        if not isinstance(version, int) or version > RIG_VERSION:
+        if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= RIG_VERSION:
             raise BadInput(f'rig YAML version {version!r} is not one this volcap reads (newer than {RIG_VERSION}?)')
-        return cls([RigCamera.from_dict(c) for c in d['cameras']], str(d.get('name', 'volcap')))
+        name = d.get('name', 'volcap')
+        if not isinstance(name, str) or not name:
+            raise BadInput(f'rig name: expected text, got {name!r:.40}')
+        return cls([RigCamera.from_dict(c) for c in d['cameras']], name)
 
 
 def rig_camera_from_k4a(calibration: dict | str | Path, name: str, color_mode: str = '720P',

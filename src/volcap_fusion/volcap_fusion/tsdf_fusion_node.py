@@ -270,12 +270,17 @@ class TsdfFusionNode(Node):
             return
         w = self.worker
         period = self.sync.period.period_ns if self.sync is not None else None
-        silent = silent_cameras(self.cameras, self.arrivals, time.monotonic_ns(), period,
-                                self.node_cfg.silent_periods)
+        now = time.monotonic_ns()
+        silent = silent_cameras(self.cameras, self.arrivals, now, period, self.node_cfg.silent_periods,
+                                while_others_deliver=True)
         fused = f'{self.stats["fused"]} frame sets fused'
+        quiet_s = (now - max(self.arrivals.values())) / 1e9 if self.arrivals else 0.0
+        if not silent and quiet_s > max(1.0, self.node_cfg.silent_periods * (period or 0) / 1e9):
+            fused += f'; idle: no camera has delivered for {quiet_s:.0f} s'     # a phase without output, or the end
         errors, warnings = [], []
         if silent:
-            errors.append('silent cameras (no frames): ' + ', '.join(f'{c} for {s:.1f} s' for c, s in silent.items()))
+            # the names only: the message (and so the log line) stays the same while the silence lasts
+            errors.append('silent cameras (no frames while the others deliver): ' + ', '.join(silent))
         elif self.short_of:
             warnings.append(f'running short of cameras: the last frame set lacked {", ".join(self.short_of)}')
         if self.writer_failure:
@@ -294,6 +299,7 @@ class TsdfFusionNode(Node):
                                 queue_dropped=w.dropped, errors=w.errors,
                                 work_s=round(self.work_s, 3), **self.stats, **self.last, **latency,
                                 silent_cameras=','.join(silent), short_of=','.join(self.short_of),
+                                silent_s=','.join(f'{s:.1f}' for s in silent.values()),
                                 **self.admission.counts())
 
     def destroy_node(self):
