@@ -22,7 +22,9 @@ import torch
 from color_stage import median_ms  # bench/ is on the path when run as a script
 
 from volcap_color.apply import ImageCorrector, RegionLut
-from volcap_color.neural import CaptureMapper, ColorField, load_harmonisation, use_bf16
+from volcap_color.neural_models import load_harmonisation
+from volcap_color.neural_nets import CaptureMapper, ColorField
+from volcap_color.neural_train import use_bf16
 from volcap_core import transport
 from volcap_core.color import ColorModel
 

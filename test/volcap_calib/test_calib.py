@@ -467,7 +467,7 @@ def test_cli_eval_chart(shared_data, tmp_path):
     assert (tmp_path / 'chair_warm_chart.png').stat().st_size > 10_000
     broken = tmp_path / 'broken.png'
     broken.write_bytes(b'\x89PNG\r\n\x1a\n truncated')
-    assert main(['eval', 'chart', str(broken), '--json', str(out)]) == 1
+    assert main(['eval', 'chart', str(broken), '--json', str(out)]) == 2
     assert json.loads(out.read_text())['failed'] == [str(broken)]
 
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from volcap_color.apply import ImageCorrector
+from volcap_color.baselines import brown_lowe, fit_reinhard, moulon, propagate, propagation_tree
+from volcap_color.chart_free import chart_free_fit
 from volcap_color.correspondence import Matches
-from volcap_color.methods import brown_lowe, chart_free_fit, fit_reinhard, moulon, propagate, propagation_tree
 from volcap_core.color import ColorModel, linear_to_srgb, srgb_to_linear
 
 MATRIX = np.array([[1.1, 0.05, -0.02], [0.03, 0.92, 0.01], [-0.04, 0.02, 1.2]])
@@ -121,7 +122,7 @@ def test_gain_baselines_recover_gains_and_the_tree_starts_at_the_centre():
 
 
 def test_model_choice_is_the_simplest_family_that_fits_and_leaves_a_consistent_rig_alone():
-    from volcap_color.methods import choose_chart_free_model, held_out_scores
+    from volcap_color.model_choice import choose_chart_free_model, held_out_scores
     cams = [f'cam{i}' for i in range(4)]
     gains = {c: np.array(g) for c, g in zip(cams, [(1.0, 1.0, 1.0), (0.8, 0.9, 1.1), (1.2, 1.0, 0.85), (0.9, 1.1, 1)])}
     by_gain = _synthetic_matches(cams, {c: (lambda g: lambda lin: lin * g)(g) for c, g in gains.items()})

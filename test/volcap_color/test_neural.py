@@ -10,7 +10,11 @@ import torch
 from volcap_color.apply import ImageCorrector, RegionLut
 from volcap_color.config import HarmoniseConfig
 from volcap_color.correspondence import View, match_pair
-from volcap_color.neural import CaptureMapper, bake_region_lut, export_error, harmonise, load_harmonisation, train
+from volcap_color.neural import harmonise
+from volcap_color.neural_live import bake_region_lut, export_error
+from volcap_color.neural_models import load_harmonisation
+from volcap_color.neural_nets import CaptureMapper
+from volcap_color.neural_train import train
 from volcap_core.camera import CameraModel
 from volcap_core.color import linear_to_srgb
 from volcap_core.poses import look_at

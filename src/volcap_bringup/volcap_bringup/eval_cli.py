@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from volcap_core.errors import BadInput
 from volcap_core.files import write_json
 from volcap_core.settings import add_arguments, config_from_args
 from volcap_eval.config import ColorEvalConfig
@@ -56,7 +57,7 @@ def cmd_eval_chart(args) -> int:
     if args.json:
         write_json(args.json, report)
         print(f'wrote {args.json}')
-    return 1 if report['failed'] else 0
+    return BadInput.exit_code if report['failed'] else 0     # a photo without a chart: the user's to fix
 
 
 def _print_report(report: dict, args) -> int:

@@ -64,7 +64,7 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
 
 def compose(package: str, executable: str, namespace: str = '', params: dict | None = None,
             remaps: dict[str, str] | None = None, **node_options):
-    """The node instantiated in this process (rclpy initialised), as a composed graph hosts it."""
+    """The node instantiated in this process (rclpy already up), as a composed graph hosts it."""
     from importlib import import_module
 
     from rclpy.parameter import Parameter

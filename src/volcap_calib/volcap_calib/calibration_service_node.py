@@ -213,7 +213,7 @@ class CalibrationService(Node):
         self.pub_poses.publish(poses)
 
     def _report(self) -> None:
-        self._assemble_rig()
+        self._set_rig('/tf_static', self.rigs.refresh)     # cameras whose extrinsic arrived since
         if not self.session.ready:
             return
         observations, views = self.session.counts()

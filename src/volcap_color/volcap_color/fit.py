@@ -11,9 +11,10 @@ from volcap_core.calibration import Calibration
 from volcap_core.color import ColorModel
 from volcap_core.errors import BadInput
 
+from .chart_free import chart_free_fit, identity_models
 from .config import ColorFitConfig  # noqa: F401 (re-exported: its home before config.py)
 from .correspondence import View, cameras_in, find_correspondences, merge_matches
-from .methods import ModelChoice, chart_free_fit, choose_chart_free_model, identity_models
+from .model_choice import ModelChoice, choose_chart_free_model
 
 
 @dataclass

@@ -13,283 +13,41 @@ mapping network D per camera, in torch.
   camera's view-dependent highlights are favoured). x and y are the pixel centre over the
   image size, in [0, 1], so D does not depend on the image resolution.
 
-Surface points come from the cleaned depth registered to colour (``evaluate.capture_views``).
+Surface points come from the cleaned depth registered to colour (``volcap_pipeline.replay.capture_views``).
 Each D also sees some pixels the cleaning removed (the room), aimed at the camera's affine map
 onto the reference (``background``, ours), so its output there is not arbitrary. Defaults are
 the authors' published settings (DESIGN.md) except the sample counts, which bound training time
 on a CPU, and our ``mean`` reference and background samples. Training is deterministic for a seed on one device and
 precision; after every epoch a checkpoint is written atomically and ``resume`` carries on from
 it.
+
+This module is the job (``harmonise``, ``run`` and its report); the networks are
+``neural_nets``, the training data ``neural_samples``, device, precision and the training loop
+``neural_train``, the saved networks ``neural_models``, the live form ``neural_live``.
 """
 from __future__ import annotations
 
-import io
-import json
-import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
-from tqdm import tqdm
 
 from volcap_core.errors import BadInput
-from volcap_core.files import atomic_write, write_json
+from volcap_core.files import write_json
 
-from .apply import ImageCorrector, RegionLut, pixel_centres
+from .apply import pixel_centres
 from .config import HarmoniseConfig
 from .correspondence import View, split_frame_sets
 from .figures import training_figure
+from .neural_live import _mapper_error, export_live
+from .neural_models import CHECKPOINT, FIELD_FILE, MANIFEST, Harmonisation
+from .neural_nets import CaptureMapper, ColorField
+from .neural_samples import SurfaceSamples, training_samples
+from .neural_train import TrainResult, _save_atomic, reference_color, torch_device, train, use_bf16
 
-CHECKPOINT = 'checkpoint.pt'
-FIELD_FILE = 'field.pt'
-MANIFEST = 'manifest.json'
 HELD_OUT = 20_000        # at most this many pixels per camera are kept from D's training to check it
-
-
-def positional_encoding(v: torch.Tensor, frequencies: int) -> torch.Tensor:
-    """gamma(v) = (v, sin(2^0 pi v), cos(2^0 pi v), ..., sin(2^(L-1) pi v), cos(2^(L-1) pi v))."""
-    scales = (2.0 ** torch.arange(frequencies, device=v.device, dtype=v.dtype)) * math.pi
-    x = (v[..., None] * scales).flatten(-2)
-    return torch.cat([v, torch.sin(x), torch.cos(x)], dim=-1)
-
-
-class ColorField(nn.Module):
-    """E: (world point, world camera centre) -> sRGB in [0, 1]."""
-
-    def __init__(self, point_mean, point_std, camera_mean, camera_std, width: int = 256,
-                 point_frequencies: int = 10, camera_frequencies: int = 4):
-        super().__init__()
-        for name, v in (('point_mean', point_mean), ('point_std', point_std), ('camera_mean', camera_mean),
-                        ('camera_std', camera_std)):
-            self.register_buffer(name, torch.as_tensor(np.asarray(v, np.float32)))
-        self.point_frequencies, self.camera_frequencies = point_frequencies, camera_frequencies
-        p_dim, c_dim = 3 + 6 * point_frequencies, 3 + 6 * camera_frequencies
-        self.trunk = nn.ModuleList([nn.Linear(p_dim, width)] + [nn.Linear(width, width) for _ in range(3)])
-        self.skip = nn.ModuleList([nn.Linear(width + p_dim, width)] + [nn.Linear(width, width) for _ in range(3)])
-        self.feature = nn.Linear(width, width)
-        self.view = nn.Linear(width + c_dim, width // 2)
-        self.rgb = nn.Linear(width // 2, 3)
-
-    def forward(self, points: torch.Tensor, cameras: torch.Tensor) -> torch.Tensor:
-        p = positional_encoding((points - self.point_mean) / self.point_std, self.point_frequencies)
-        c = positional_encoding((cameras - self.camera_mean) / self.camera_std, self.camera_frequencies)
-        h = p
-        for layer in self.trunk:
-            h = torch.relu(layer(h))
-        h = torch.cat([h, p], dim=-1)
-        for layer in self.skip:
-            h = torch.relu(layer(h))
-        h = torch.cat([self.feature(h), c], dim=-1)
-        return torch.sigmoid(self.rgb(torch.relu(self.view(h))))
-
-
-class CaptureMapper(nn.Module):
-    """D: (sRGB in [0, 1], pixel x y in [0, 1]) -> harmonised sRGB in [0, 1]."""
-
-    def __init__(self, width: int = 128, layers: int = 8):
-        super().__init__()
-        sizes = [5] + [width] * layers
-        self.hidden = nn.ModuleList([nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:])])
-        self.rgb = nn.Linear(width, 3)
-
-    def forward(self, rgb: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
-        h = torch.cat([rgb, xy], dim=-1)
-        for layer in self.hidden:
-            h = torch.relu(layer(h))
-        return torch.sigmoid(self.rgb(h))
-
-
-# --- training data ------------------------------------------------------------------------------
-@dataclass
-class SurfaceSamples:
-    """Pixels with a surface point, from one or more views."""
-    points: np.ndarray      # (N, 3) float32 world
-    centres: np.ndarray     # (N, 3) float32 world position of the camera that saw it
-    colors: np.ndarray     # (N, 3) float32 sRGB [0, 1]
-    xy: np.ndarray          # (N, 2) float32 pixel centre / image size (``apply.pixel_centres``)
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-    def select(self, keep: np.ndarray) -> SurfaceSamples:
-        return SurfaceSamples(*(getattr(self, k)[keep] for k in ('points', 'centres', 'colors', 'xy')))
-
-
-def view_samples(view: View, count: int | None, rng: np.random.Generator) -> SurfaceSamples:
-    """Up to ``count`` random pixels of ``view`` with depth (all of them for None)."""
-    h, w = view.depth.shape
-    valid = np.flatnonzero(view.depth.reshape(-1) > 0)
-    if count is not None and len(valid) > count:
-        valid = np.sort(rng.choice(valid, count, replace=False))
-    y, x = np.divmod(valid, w)
-    local = view.rays().reshape(-1, 3)[valid] * view.depth.reshape(-1)[valid, None]
-    T = view.T_world_camera
-    points = (local @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-    return SurfaceSamples(points, np.broadcast_to(T[:3, 3].astype(np.float32), points.shape).copy(),
-                          view.color.reshape(-1, 3)[valid].astype(np.float32) / 255.0, pixel_centres(x, y, w, h))
-
-
-def concat_samples(parts: list[SurfaceSamples]) -> SurfaceSamples:
-    return SurfaceSamples(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                            ('points', 'centres', 'colors', 'xy')))
-
-
-def training_samples(sets: list[list[View]], cameras: list[str], total: int | None, seed: int) -> SurfaceSamples:
-    """About ``total`` samples shared evenly by every view of every frame set (all for None)."""
-    rng = np.random.default_rng(seed)
-    views = [v for views in sets for v in views if v.name in cameras]
-    if not views:
-        raise BadInput('no view of the calibrated cameras to train on')
-    share = None if total is None else max(1, total // len(views))
-    samples = concat_samples([view_samples(v, share, rng) for v in views])
-    if not len(samples):
-        raise BadInput('the training views have no pixel with depth: is the subject in view and the clean plate '
-                         'learnt?')
-    return samples
-
-
-# --- devices and the training loop --------------------------------------------------------------
-def torch_device(name: str) -> torch.device:
-    if name == 'auto':
-        return torch.device('cuda' if torch.cuda.is_available() else 'cpu')
-    if name == 'cuda' and not torch.cuda.is_available():
-        raise BadInput('--device cuda: torch sees no CUDA device')
-    return torch.device(name)
-
-
-def cpu_has_bf16() -> bool:
-    """Whether this CPU computes bf16 natively (AVX512-BF16 or AMX); elsewhere autocast emulates it slowly."""
-    try:
-        flags = Path('/proc/cpuinfo').read_text()
-    except OSError:
-        return False
-    return 'avx512_bf16' in flags or 'amx_bf16' in flags
-
-
-def use_bf16(precision: str, device: torch.device) -> bool:
-    if precision not in ('auto', 'bf16', 'fp32'):
-        raise BadInput(f'precision must be auto, bf16 or fp32, not {precision!r}')
-    if precision != 'auto':
-        return precision == 'bf16'
-    return torch.cuda.is_bf16_supported() if device.type == 'cuda' else cpu_has_bf16()
-
-
-@dataclass
-class TrainResult:
-    losses: list[float] = field(default_factory=list)      # mean MSE per epoch
-    seconds: float = 0.0
-    steps: int = 0
-
-
-def _save_atomic(obj, path: Path) -> None:
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    atomic_write(path, lambda f: f.write(buf.getvalue()))
-
-
-def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tensor, *, epochs: int, batch: int,
-          lr: float, seed: int, bf16: bool, label: str, lr_final: float | None = None,
-          checkpoint: Path | None = None, settings: dict | None = None, progress: bool = True) -> TrainResult:
-    """Adam on the MSE of ``model(*inputs)`` against ``target``, shuffled afresh each epoch from
-    ``seed``; the learning rate decays exponentially from ``lr`` to ``lr_final`` over the epochs
-    (constant for None). With ``checkpoint``, the state after each epoch is saved there under
-    ``label`` with ``settings``, and a checkpoint of the same label is resumed from (a clear error
-    if its settings differ)."""
-    device = target.device
-    optimiser = torch.optim.Adam(model.parameters(), lr=lr)
-    gamma = (lr_final / lr) ** (1.0 / max(epochs, 1)) if lr_final else 1.0
-    schedule = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
-    result, start = TrainResult(), 0
-    if checkpoint is not None and checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
-        if state['label'] == label:
-            if state.get('settings') != settings:
-                raise BadInput(f'--resume: {checkpoint} ({label}) was trained with other settings; use a new --out '
-                                 'or leave out --resume')
-            model.load_state_dict(state['model'])
-            optimiser.load_state_dict(state['optimiser'])
-            schedule.load_state_dict(state['schedule'])
-            result = TrainResult(state['losses'], state['seconds'], state['steps'])
-            start = len(result.losses)
-    n = len(target)
-    steps_per_epoch = max(1, math.ceil(n / batch))
-    bar = tqdm(total=epochs * steps_per_epoch, initial=start * steps_per_epoch, desc=label, unit='step',
-               disable=not progress, dynamic_ncols=True)
-    model.train()
-    for epoch in range(start, epochs):
-        t0 = time.perf_counter()
-        order = torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100_003 + epoch)).to(device)
-        total = torch.zeros((), device=device)    # summed on the device: no sync per step on CUDA
-        for s in range(steps_per_epoch):
-            idx = order[s * batch:(s + 1) * batch]
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                out = model(*(x[idx] for x in inputs))
-            loss = torch.mean((out.float() - target[idx]) ** 2)
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
-            total += loss.detach() * len(idx)
-            bar.update()
-            if s % 20 == 0:
-                bar.set_postfix(epoch=epoch + 1, loss=f"{float(loss.detach()):.2e}")
-        schedule.step()
-        result.losses.append(float(total) / n)
-        result.seconds += time.perf_counter() - t0
-        result.steps += steps_per_epoch
-        if checkpoint is not None:
-            _save_atomic({'label': label, 'model': model.state_dict(), 'optimiser': optimiser.state_dict(),
-                          'schedule': schedule.state_dict(), 'settings': settings, **asdict(result)}, checkpoint)
-    bar.close()
-    model.eval()
-    return result
-
-
-@torch.no_grad()
-def predict(model: nn.Module, inputs: tuple[torch.Tensor, ...], bf16: bool, chunk: int = 65536) -> torch.Tensor:
-    """``model(*inputs)`` in chunks, as float32."""
-    device = inputs[0].device
-    out = []
-    for s in range(0, len(inputs[0]), chunk):
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-            out.append(model(*(x[s:s + chunk] for x in inputs)).float())
-    return torch.cat(out) if out else torch.zeros((0, 3), device=device)
-
-
-def reference_color(field_model: ColorField, points: torch.Tensor, centres: np.ndarray, bf16: bool
-                     ) -> torch.Tensor:
-    """E's colour of ``points`` as seen from each of ``centres`` (one row: that camera), averaged."""
-    total = torch.zeros((len(points), 3), device=points.device)
-    for c in centres:
-        cam = torch.as_tensor(np.asarray(c, np.float32), device=points.device).expand(len(points), 3)
-        total += predict(field_model, (points, cam), bf16)
-    return total / len(centres)
-
-
-# --- the whole job -------------------------------------------------------------------------------
-@dataclass
-class Harmonisation:
-    """What ``harmonise`` trained: E, one D per camera and the reference they map to."""
-    cameras: list[str]
-    centres: dict[str, np.ndarray]
-    field: ColorField
-    mappers: dict[str, CaptureMapper]
-    reference: str
-    config: HarmoniseConfig
-    device: torch.device
-    bf16: bool
-    report: dict
-
-    def reference_centres(self) -> np.ndarray:
-        names = self.cameras if self.reference == 'mean' else [self.reference]
-        return np.stack([self.centres[c] for c in names])
-
-    def map_colors(self, camera: str, rgb: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """D of ``camera`` on sRGB (N, 3) in [0, 1] at normalised pixel positions (N, 2)."""
-        t = lambda a: torch.as_tensor(np.asarray(a, np.float32), device=self.device)
-        return predict(self.mappers[camera], (t(rgb), t(xy)), self.bf16).cpu().numpy().astype(np.float64)
 
 
 def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> ColorField:
@@ -410,93 +168,6 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         'mapper_error': held_out,
         'centres': {c: v.tolist() for c, v in centres.items()}, 'config': asdict(cfg)}
     return Harmonisation(cameras, centres, field_model, mappers, cfg.reference, cfg, device, bf16, report)
-
-
-def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisation:
-    """The networks ``harmonise`` wrote into ``models_dir`` (with its manifest)."""
-    models_dir = Path(models_dir)
-    manifest_path = models_dir / MANIFEST
-    if not manifest_path.exists():
-        raise FileNotFoundError(f'{models_dir} has no {MANIFEST}: not a volcap harmonise output')
-    manifest = json.loads(manifest_path.read_text())
-    # folders written before identifiers were spelt "color" say lut_colours
-    cfg_dict = {k.replace('colour', 'color'): v for k, v in manifest['config'].items()}
-    cfg_dict['lut_grid'] = tuple(cfg_dict['lut_grid'])
-    cfg = HarmoniseConfig(**cfg_dict)
-    dev = torch_device(device)
-    state = torch.load(models_dir / FIELD_FILE, map_location=dev, weights_only=False)['state']
-    field_model = ColorField(state['point_mean'], state['point_std'], state['camera_mean'], state['camera_std'],
-                             cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies).to(dev)
-    field_model.load_state_dict(state)
-    field_model.eval()
-    mappers = {}
-    for cam in manifest['cameras']:
-        m = CaptureMapper(cfg.mapper_width, cfg.mapper_layers).to(dev)
-        m.load_state_dict(torch.load(models_dir / f'{cam}.mapper.pt', map_location=dev, weights_only=False)['state'])
-        m.eval()
-        mappers[cam] = m
-    centres = {c: np.asarray(v, np.float32) for c, v in manifest['centres'].items()}
-    return Harmonisation(manifest['cameras'], centres, field_model, mappers, manifest['reference'], cfg, dev,
-                         use_bf16(cfg.precision, dev), manifest)
-
-
-# --- the live form -------------------------------------------------------------------------------
-def bake_region_lut(harm: Harmonisation, camera: str, colors: int | None = None,
-                    grid: tuple[int, int] | None = None) -> RegionLut:
-    """D of ``camera`` sampled on ``colours``^3 colour nodes at each of ``grid`` (nx, ny) image
-    nodes: what ``color_corrector`` applies at frame rate."""
-    n = colors or harm.config.lut_colors
-    nx, ny = grid or harm.config.lut_grid
-    axis = np.linspace(0.0, 1.0, n, dtype=np.float32)
-    rgb = np.stack(np.meshgrid(axis, axis, axis, indexing='ij'), axis=-1).reshape(-1, 1, 3)
-    yx = np.stack(np.meshgrid(np.linspace(0, 1, ny, dtype=np.float32), np.linspace(0, 1, nx, dtype=np.float32),
-                              indexing='ij'), axis=-1).reshape(1, -1, 2)
-    rgb_all = np.broadcast_to(rgb, (n ** 3, nx * ny, 3)).reshape(-1, 3)
-    xy_all = np.broadcast_to(yx[..., ::-1], (n ** 3, nx * ny, 2)).reshape(-1, 2)
-    mapped = harm.map_colors(camera, rgb_all, xy_all)
-    return RegionLut((mapped * 255.0).astype(np.float32).reshape(n, n, n, ny, nx, 3))
-
-
-def export_error(harm: Harmonisation, camera: str, lut: RegionLut, images: list[np.ndarray]) -> dict:
-    """The live form against D itself on every pixel of ``images`` (uint8 RGB), both as 8-bit
-    images: mean, 99th percentile and maximum absolute difference in levels."""
-    diffs = []
-    corrector = ImageCorrector(lut)
-    for img in images:
-        h, w = img.shape[:2]
-        ys, xs = np.mgrid[0:h, 0:w]
-        xy = pixel_centres(xs.reshape(-1), ys.reshape(-1), w, h)
-        net = np.round(np.clip(harm.map_colors(camera, img.reshape(-1, 3) / 255.0, xy), 0, 1) * 255.0)
-        diffs.append(np.abs(corrector(img).reshape(-1, 3).astype(np.float64) - net).reshape(-1))
-    d = np.concatenate(diffs)
-    return {'mean_levels': float(d.mean()), 'p99_levels': float(np.percentile(d, 99)), 'max_levels': float(d.max()),
-            'pixels': int(d.size // 3)}
-
-
-def _mapper_error(field_model: ColorField, mapper: CaptureMapper, samples: SurfaceSamples, ref_centres: np.ndarray,
-                  bf16: bool) -> dict:
-    """D against E's reference colour on ``samples`` (pixels D was not trained on): RMS and 99th
-    percentile of the difference, in levels."""
-    device = next(mapper.parameters()).device
-    t = lambda a: torch.as_tensor(a, device=device)
-    target = reference_color(field_model, t(samples.points), ref_centres, bf16)
-    d = (predict(mapper, (t(samples.colors), t(samples.xy)), bf16) - target).cpu().numpy() * 255.0
-    return {'rms_levels': float(np.sqrt(np.mean(d ** 2))), 'p99_levels': float(np.percentile(np.abs(d), 99)),
-            'pixels': len(samples)}
-
-
-def export_live(harm: Harmonisation, out_dir: str | Path, check_views: list[View], progress: bool = True) -> dict:
-    """Bake every camera's D into ``<camera>.lut.npz`` and measure the LUT against D on every
-    pixel of ``check_views`` (frame sets not trained on, where there are any)."""
-    out_dir = Path(out_dir)
-    errors = {}
-    for cam in tqdm(harm.cameras, desc='live form (region LUTs)', unit='camera', disable=not progress):
-        lut = bake_region_lut(harm, cam)
-        lut.save(out_dir / f'{cam}.lut.npz', camera=cam, reference=harm.reference)
-        mine = [v.color for v in check_views if v.name == cam]
-        if mine:
-            errors[cam] = export_error(harm, cam, lut, mine)
-    return {'export_error': errors}
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Process set-up for moving 28 MB frame sets: the shipped Fast DDS profile and malloc tuning.
 
-Call ``configure()`` before ``rclpy.init()``. An explicit ``FASTRTPS_DEFAULT_PROFILES_FILE`` in
+Call ``configure()`` before rclpy is initialised. An explicit ``FASTRTPS_DEFAULT_PROFILES_FILE`` in
 the environment wins; ``VOLCAP_TRANSPORT=multihost`` selects the profile for a graph spread over
 hosts (``fastdds_multihost.xml``: large UDP socket buffers, docs/multihost.md);
 ``VOLCAP_STOCK_DDS=1`` keeps Fast DDS's built-in transports (for comparisons such as

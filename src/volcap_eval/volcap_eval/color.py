@@ -38,6 +38,19 @@ from tqdm import tqdm
 
 from volcap_calib.color import component_differences, fit_model
 from volcap_calib.run import chart_samples, load_board
+from volcap_color.baselines import (
+    Mapping,
+    PixelMapping,
+    apply_mapping,
+    brown_lowe,
+    fit_finlayson,
+    fit_reinhard,
+    fit_vandermonde,
+    identity,
+    moulon,
+    propagate,
+)
+from volcap_color.chart_free import chart_free_fit, identity_models
 from volcap_color.config import HarmoniseConfig
 from volcap_color.correspondence import (
     Matches,
@@ -47,25 +60,7 @@ from volcap_color.correspondence import (
     merge_matches,
     split_frame_sets,
 )
-from volcap_color.methods import (
-    SATURATED_CHROMA,
-    Mapping,
-    ModelChoice,
-    PixelMapping,
-    apply_mapping,
-    brown_lowe,
-    chart_free_fit,
-    choose_chart_free_model,
-    chroma,
-    fit_finlayson,
-    fit_reinhard,
-    fit_vandermonde,
-    identity,
-    identity_models,
-    moulon,
-    propagate,
-    split_matches,
-)
+from volcap_color.model_choice import SATURATED_CHROMA, ModelChoice, choose_chart_free_model, chroma, split_matches
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.color import ColorModel, delta_e2000, linear_to_lab, srgb_to_lab, srgb_to_linear
 from volcap_core.errors import BadInput
@@ -242,7 +237,7 @@ def neural_mappings(models_dir: str | Path, views: list[View], cameras: list[str
     """The ``neural`` (networks D) and ``neural_live`` (region LUTs) mappings of a ``volcap
     harmonise`` folder, its manifest and the LUTs."""
     from volcap_color.apply import RegionLut
-    from volcap_color.neural import load_harmonisation
+    from volcap_color.neural_models import load_harmonisation
     harm = load_harmonisation(models_dir)
     missing = [c for c in cameras if c not in harm.mappers]
     if missing:
