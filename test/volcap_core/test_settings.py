@@ -64,3 +64,40 @@ def test_stage_configs_validate_their_defaults_and_reject_out_of_range_values():
     # each value in range, the combination not: the config's own validate() refuses it
     with pytest.raises(ValueError, match='min_range < max_range'):
         settings.build(DepthFilterConfig, {'min_range': 3.0})
+
+
+@dataclass
+class Command:
+    """A command's config: a path that is not a setting, settings, a nested config whose own
+    default differs from its class's, and a boolean on by default."""
+    path: str
+    voxel_size: float = setting(0.004, 'voxel edge (m)', 0.0005, 0.1, option='--voxel')
+    inner: Inner = field(default_factory=lambda: Inner(gain=2.0))
+    keep: bool = setting(True, 'keep it')
+    quiet: bool = setting(False, 'say less')
+    centre: tuple[float, float, float] | None = setting(None, 'centre', none_as=[0.0])
+
+
+def test_command_line_options_come_from_the_settings_and_restate_no_default():
+    import argparse
+    p = argparse.ArgumentParser()
+    settings.add_arguments(p, Command)
+    help_text = p.format_help()
+    assert 'voxel edge (m) (default: 0.004; 0.0005 - 0.1)' in help_text and '--voxel' in help_text
+    assert '--no-keep' in help_text and '--quiet' in help_text and '--gain' in help_text
+    given = p.parse_args([])
+    assert settings.given_settings(Command, given) == {}           # nothing given: nothing restated
+    cfg = settings.config_from_args(Command, given, path='x')
+    assert cfg == Command('x') and cfg.inner.gain == 2.0           # the field's own nested default
+    cfg = settings.config_from_args(Command, p.parse_args(['--voxel', '0.01', '--no-keep', '--quiet', '--gain',
+                                                           '3', '--centre', '1', '2', '3']), path='x')
+    assert (cfg.voxel_size, cfg.keep, cfg.quiet, cfg.inner.gain, cfg.centre) == (0.01, False, True, 3.0, (1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match='voxel_size must be within'):
+        settings.config_from_args(Command, p.parse_args(['--voxel-size', '1']), path='x')
+    with pytest.raises(ValueError, match='gain must be within'):
+        settings.config_from_args(Command, p.parse_args(['--gain', '9']), path='x')
+    preset = argparse.ArgumentParser()
+    settings.add_arguments(preset, Command, ['voxel_size'], defaults={'voxel_size': 0.01})
+    assert '(default: 0.01;' in preset.format_help()
+    assert settings.config_from_args(Command, preset.parse_args([]), defaults={'voxel_size': 0.01},
+                                     path='x').voxel_size == 0.01

@@ -159,14 +159,23 @@ def build(cls, values: dict[str, Any], direct: dict[str, Any] | None = None):
     return cfg
 
 
-def _construct(cls, prefix: tuple, nested: dict):
+def _construct(cls, prefix: tuple, nested: dict, base=None):
+    """``cls`` from the values in ``nested`` (by attribute path); a nested config that is not
+    given keeps the field's own default (its ``default_factory`` may differ from the nested
+    class's defaults), and one that is given starts from it."""
     hints = typing.get_type_hints(cls)
     kwargs = dict(nested.get(prefix, {}))
     for f in fields(cls):
         sub = hints.get(f.name)
-        if isinstance(sub, type) and is_dataclass(sub):
-            kwargs[f.name] = _construct(sub, (*prefix, f.name), nested)
-    return cls(**kwargs)
+        if f.name in kwargs or not (isinstance(sub, type) and is_dataclass(sub)):
+            continue
+        path = (*prefix, f.name)
+        own = _default(f) if f.default is not MISSING or f.default_factory is not MISSING else None
+        if any(k[:len(path)] == path for k in nested):
+            kwargs[f.name] = _construct(sub, path, nested, own)
+        elif own is not None:
+            kwargs[f.name] = own
+    return dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)
 
 
 def validate(cfg) -> None:
