@@ -69,7 +69,28 @@ def test_a_camera_that_stops_is_named_silent_until_it_returns():
     # Never heard from: counted from the first frame of any camera; nothing heard: nobody silent.
     assert silent_cameras(['a', 'b'], {'a': 0}, 2_000_000_000, period) == {'b': 2.0, 'a': 2.0}
     assert silent_cameras(['a', 'b'], {}, 2_000_000_000, period) == {}
-    # The fusion's rule: silent only while another camera delivers; all quiet together is idle.
+
+
+def test_silence_is_counted_in_the_others_frames_at_any_rate():
+    """The fusion's rule: a camera is silent once the others have delivered 10 frames since its
+    last, whatever the frame rate (a bag at a twentieth of real time, a stalled filter catching
+    up); all cameras quiet together is idle, not silent."""
+    from volcap_core.health import SilenceWatch
     s = 1_000_000_000
-    assert silent_cameras(['a', 'b'], {'a': 10 * s, 'b': 2 * s}, 10 * s, period, while_others_deliver=True) == {'b': 8.0}
-    assert silent_cameras(['a', 'b'], {'a': 9 * s, 'b': 2 * s}, 10 * s, period, while_others_deliver=True) == {}
+    watch = SilenceWatch(frames=10, min_s=0.5)
+    for k in range(30):                       # 1.2 frame sets a second: 0.83 s between them
+        t = int(k * 0.83 * s)
+        for cam in ('a', 'b', 'c'):
+            if cam != 'c' or k < 12:          # c stops after 12 frames
+                watch.arrived(cam, t + (300_000_000 if cam == 'b' else 0))   # b always 0.3 s late
+        if k < 12 + 9:                        # the others 10 frames past its last: silent
+            assert watch.silent(['a', 'b', 'c'], t + 1) == {}, k
+    assert set(watch.silent(['a', 'b', 'c'], int(29 * 0.83 * s) + 1)) == {'c'}
+    assert watch.idle_s(int(29 * 0.83 * s) + 10 * s) == pytest.approx(9.7, abs=0.01)
+    # a camera a little slower than the rest (one frame in ten dropped) is never silent
+    watch = SilenceWatch(frames=10)
+    for k in range(200):
+        watch.arrived('a', k * s // 30)
+        if k % 10:
+            watch.arrived('b', k * s // 30)
+        assert 'b' not in watch.silent(['a', 'b'], k * s // 30 + 1)

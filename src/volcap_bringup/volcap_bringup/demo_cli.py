@@ -8,11 +8,28 @@ from __future__ import annotations
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-# a third of the default training, so the demo stays a few minutes (docs/color.md gives full-length figures)
-DEMO_HARMONISE = {'points': 100_000, 'field_epochs': 40, 'field_lr': 5e-4, 'field_lr_final': 5e-5,
-                  'mapper_points': 30_000}
+from volcap_core.settings import add_arguments, config_from_args, setting
+
+
+@dataclass
+class DemoConfig:
+    """What the demo renders and how long its steps run (the defaults: `make demo`)."""
+    frames: int = setting(30, 'capture frames of the moving subject', 1, 10_000)
+    board_poses: int = setting(16, 'calibration board poses (16: enough shared views to chain the four stands)',
+                               1, 1000)
+    seed: int = setting(0, 'seed of the synthetic studio', 0, 2**31 - 1)
+    colour_frames: int = setting(4, 'capture frame sets the colour steps use', 2, 1000)
+    # a third of the default training, so the demo stays a few minutes (docs/color.md: full-length figures)
+    harmonise_epochs: int = setting(40, 'epochs of colour field E in the short neural run', 1, 10_000)
+    mapper_epochs: int = setting(20, 'epochs of each camera\'s network D in the short neural run', 1, 10_000)
+    scored_frames: int = setting(5, 'fused frames scored against the ground truth', 1, 10_000)
+
+    def harmonise(self) -> dict:
+        return {'points': 100_000, 'field_epochs': self.harmonise_epochs, 'field_lr': 5e-4, 'field_lr_final': 5e-5,
+                'mapper_points': 30_000, 'mapper_epochs': self.mapper_epochs}
 
 
 def cmd_demo(args) -> int:
@@ -38,10 +55,10 @@ def cmd_demo(args) -> int:
     from .run_graph import run as run_graph
     from .session import GraphSession
 
+    demo = config_from_args(DemoConfig, args)
     out = Path(args.out)
     bag = out / 'studio'
-    # 16 board poses: enough shared views to chain the four stands for the calibration step
-    cfg = SynthConfig(cameras=8, frames=args.frames, board_poses=16, background_frames=3, seed=args.seed)
+    cfg = SynthConfig(cameras=8, frames=demo.frames, board_poses=demo.board_poses, background_frames=3, seed=demo.seed)
     if bag.exists() and _same_config(bag, cfg):
         print(f'[1/7] reusing the studio bag {bag}')
     else:
@@ -77,15 +94,16 @@ def cmd_demo(args) -> int:
     print(f'[4/7] neural colour harmonisation (paper 001), a short run of volcap harmonise -> {models}')
     t0 = time.perf_counter()
     rig_calibration = Calibration.load(calibration)
-    sets = capture_views(bag, rig_calibration, 4)
-    report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**DEMO_HARMONISE),
+    sets = capture_views(bag, rig_calibration, demo.colour_frames)
+    report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**demo.harmonise()),
                         models, sources={'bag': str(bag), 'calibration': str(calibration)},
                         views_seconds=time.perf_counter() - t0)
     print('\n'.join(report.lines()))
 
     print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
           f'{out / "figures"}')
-    color = evaluate_color(bag, calibration, ColorEvalConfig(frames=4), neural=models, figures=out / "figures")
+    color = evaluate_color(bag, calibration, ColorEvalConfig(frames=demo.colour_frames), neural=models,
+                           figures=out / "figures")
     write_json(out / 'colour.json', color)
     print(format_color(color))
 
@@ -100,7 +118,7 @@ def cmd_demo(args) -> int:
         return 1
 
     print(f'[7/7] the fused sequence against the ground truth: volcap eval fusion -> {out / "fusion.json"}')
-    fusion = evaluate_fusion(run, bag, max_frames=5)
+    fusion = evaluate_fusion(run, bag, max_frames=demo.scored_frames)
     write_json(out / 'fusion.json', fusion)
     print(f'{fusion["frames"]} frames: accuracy {fusion["accuracy_mm"]:.2f} mm, completeness '
           f'{100 * fusion["completeness"]:.1f} % of the observable surface, '
@@ -126,7 +144,6 @@ def _same_config(bag: Path, cfg) -> bool:
 
 def add_parsers(sub) -> None:
     d = sub.add_parser('demo', help='the pipeline end to end on generated data')
-    d.add_argument('--out', default='demo_out')
-    d.add_argument('--frames', type=int, default=30)
-    d.add_argument('--seed', type=int, default=0)
+    d.add_argument('--out', default='demo_out', help='output folder (the bag, calibration, colour, the run)')
+    add_arguments(d, DemoConfig)
     d.set_defaults(func=cmd_demo)

@@ -155,21 +155,13 @@ class RigHealth:
 
 
 def silent_cameras(cameras: list[str], last_ns: dict[str, int], now_ns: int, period_ns: int | None,
-                   periods: float = 10.0, min_s: float = 0.5, while_others_deliver: bool = False
-                   ) -> dict[str, float]:
+                   periods: float = 10.0, min_s: float = 0.5) -> dict[str, float]:
     """{camera: seconds silent} for the cameras whose last frame (``last_ns``, receive clock) is
     more than ``periods`` frame periods (and ``min_s``) before ``now_ns``. A camera never heard
-    from counts from the first frame of any camera; before any frame, none is silent.
-
-    ``while_others_deliver``: a camera is silent only while frames are expected, that is while
-    another camera still delivers within the limit. When every camera is quiet together the rig
-    is idle (a phase without output, such as the clean plate being learnt; a take that ended),
-    which is nobody's fault (a stage that needs every camera, the fusion, says so)."""
+    from counts from the first frame of any camera; before any frame, none is silent."""
     if not last_ns:
         return {}
     limit = max(periods * (period_ns or DEFAULT_PERIOD_NS), min_s * 1e9)
-    if while_others_deliver and now_ns - max(last_ns.values()) > limit:
-        return {}
     first = min(last_ns.values())
     out = {}
     for cam in cameras:
@@ -177,6 +169,46 @@ def silent_cameras(cameras: list[str], last_ns: dict[str, int], now_ns: int, per
         if quiet > limit:
             out[cam] = quiet / 1e9
     return out
+
+
+class SilenceWatch:
+    """Cameras that went silent while frames were expected, counted in frames, not seconds: a
+    camera is silent once the busiest camera has delivered ``frames`` frames since its last one
+    (and ``min_s`` has passed). So the rule holds at any rate, a bag replayed at a twentieth of
+    real time as much as a live rig; when every camera is quiet together (a phase without output,
+    the end of a take) nobody is silent: the stage is idle (``idle_s``)."""
+
+    def __init__(self, frames: float = 10.0, min_s: float = 0.5):
+        self.frames = frames
+        self.min_s = min_s
+        self.count = 0                       # frames of the busiest camera
+        self._counts: dict[str, int] = {}
+        self._mark: dict[str, int] = {}      # camera -> the busiest camera's count at its last frame
+        self._last_ns: dict[str, int] = {}
+
+    def arrived(self, camera: str, now_ns: int) -> None:
+        """One frame of ``camera`` (count one stream per frame set)."""
+        n = self._counts[camera] = self._counts.get(camera, 0) + 1
+        self.count = max(self.count, n)
+        self._mark[camera] = self.count
+        self._last_ns[camera] = now_ns
+
+    def silent(self, cameras: list[str], now_ns: int) -> dict[str, float]:
+        """{camera: seconds since its last frame} for the silent ones (never heard from: since the
+        first frame of any camera)."""
+        if not self._last_ns:
+            return {}
+        first = min(self._last_ns.values())
+        out = {}
+        for cam in cameras:
+            quiet_ns = now_ns - self._last_ns.get(cam, first)
+            if self.count - self._mark.get(cam, 0) >= self.frames and quiet_ns > self.min_s * 1e9:
+                out[cam] = quiet_ns / 1e9
+        return out
+
+    def idle_s(self, now_ns: int) -> float:
+        """Seconds since any camera delivered (0 before the first frame)."""
+        return (now_ns - max(self._last_ns.values())) / 1e9 if self._last_ns else 0.0
 
 
 def _nearest(sorted_stamps: np.ndarray, queries: np.ndarray) -> np.ndarray:

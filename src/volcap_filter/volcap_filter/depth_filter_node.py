@@ -57,6 +57,11 @@ from .pipeline import DepthFilterConfig
 from .session import CleanPlateSession, DepthFilterNodeConfig, FramePair, Outcome
 
 
+# An empty stage for a moment (between takes, a board phase) is normal; this many cleaned frames
+# in a row with no depth left is worth a look.
+EMPTY_WARN_FRAMES = 10
+
+
 def decode(pair: tuple[Image, Image]):
     return color_message_to_rgb(pair[0]), depth_to_metres(pair[1])
 
@@ -196,7 +201,9 @@ class DepthFilter(Node):
             elif o.kind == 'plate_done':
                 self._clean_plate_done(o.message)
             elif o.kind == 'held':
-                self.diagnostics.report('warn', o.message)
+                # images often arrive before their camera_info or the rig: held, not lost (a pair
+                # held too long is skipped, and that is a warning)
+                self.diagnostics.report('ok', o.message)
             elif o.kind in ('skipped', 'failed'):
                 self.skipped += o.pair is not None
                 self.diagnostics.report('error' if o.kind == 'failed' else 'warn', o.message)
@@ -245,10 +252,11 @@ class DepthFilter(Node):
         values = dict(processed=self.processed, skipped=self.skipped, dropped=self.skipped,
                       last_ms=round(self.last_ms, 1), work_s=round(self.work_s, 3), clean_plate_frames=session.background.frames,
                       **self.admission.counts())
-        if self.empty_streak:
-            self.diagnostics.report('warn', f'{self.camera}: the last {self.empty_streak} cleaned frames have no depth '
-                                            'left (empty stage, or the range gate / clean plate removes everything)',
-                                    mask=session.cfg.mask_mode, **values)
+        if self.empty_streak >= EMPTY_WARN_FRAMES:
+            # the count is in the values: the message (and its one log line) stays while it lasts
+            self.diagnostics.report('warn', f'{self.camera}: cleaned frames have no depth left (empty stage, or the '
+                                            'range gate / clean plate removes everything)',
+                                    mask=session.cfg.mask_mode, empty_frames=self.empty_streak, **values)
             return
         if session.cfg.mask_mode == 'clean_plate' and not session.has_clean_plate and session.learn_remaining == 0:
             service = f'{self.get_fully_qualified_name()}/capture_clean_plate'

@@ -34,8 +34,9 @@ class FusionNodeConfig:
     marker_max_triangles: int = setting(150_000, 'the mesh marker is decimated above this', 1000, 10_000_000)
     output_dir: str = setting('', 'write the sequence (PLY + GLB per time step) here', read_only=True)
     output_formats: tuple[str, ...] = setting(('ply', 'glb'), 'sequence file formats', read_only=True)
-    silent_periods: float = setting(10.0, 'a camera with no frame for this many frame periods is reported '
-                                    'silent (ERROR) until it returns', 2.0, 1000.0)
+    silent_periods: float = setting(10.0, 'a camera is reported silent (ERROR) once the others have delivered this '
+                                    'many frames since its last one, until it returns (all quiet together: idle)',
+                                    2.0, 1000.0)
 
 
 @dataclass

@@ -44,7 +44,7 @@ from volcap_core.cdr import mesh_to_marker_cdr
 from volcap_core.conversions import camera_info_to_model, color_to_rgb, depth_to_metres, image_to_numpy, points_to_pointcloud2, stamp_to_ns
 from volcap_core.errors import BadInput
 from volcap_core.gltf_marker import glb_marker
-from volcap_core.health import silent_cameras
+from volcap_core.health import SilenceWatch
 from volcap_core.poses import invert
 from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
@@ -73,7 +73,7 @@ class TsdfFusionNode(Node):
         formats = tuple(f for f in self.node_cfg.output_formats if f)
         self.writer = SequenceWriter(output_dir, formats, self.encoding) if output_dir else None
         self.writer_failure = ''          # why the sequence stopped being written (a full disk)
-        self.arrivals: dict[str, int] = {}      # camera -> monotonic ns of its last image
+        self.silence = SilenceWatch(self.node_cfg.silent_periods)
         self.short_of: list[str] = []            # cameras missing from the last fused frame set
         self.glb_stamps: deque[int] = deque(maxlen=64)
 
@@ -150,7 +150,8 @@ class TsdfFusionNode(Node):
 
     def _on_image(self, camera: str, stream: str, msg: Image) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
-        self.arrivals[camera] = time.monotonic_ns()
+        if stream == 'depth':                   # one frame per camera and frame set
+            self.silence.arrived(camera, time.monotonic_ns())
         self.phases.frame(stamp)
         if self.sync is None or not self.admission.admit((camera, stream), stamp):
             return
@@ -269,13 +270,12 @@ class TsdfFusionNode(Node):
             self.diagnostics.report('warn', f'waiting for the calibration on /{topics.CALIBRATION}')
             return
         w = self.worker
-        period = self.sync.period.period_ns if self.sync is not None else None
         now = time.monotonic_ns()
-        silent = silent_cameras(self.cameras, self.arrivals, now, period, self.node_cfg.silent_periods,
-                                while_others_deliver=True)
+        self.silence.frames = self.node_cfg.silent_periods
+        silent = self.silence.silent(self.cameras, now)
         fused = f'{self.stats["fused"]} frame sets fused'
-        quiet_s = (now - max(self.arrivals.values())) / 1e9 if self.arrivals else 0.0
-        if not silent and quiet_s > max(1.0, self.node_cfg.silent_periods * (period or 0) / 1e9):
+        quiet_s = self.silence.idle_s(now)
+        if not silent and quiet_s > 1.0:
             fused += f'; idle: no camera has delivered for {quiet_s:.0f} s'     # a phase without output, or the end
         errors, warnings = [], []
         if silent:
