@@ -56,7 +56,6 @@ from .mask import BackgroundModel
 from .pipeline import DepthFilterConfig
 from .session import CleanPlateSession, DepthFilterNodeConfig, FramePair, Outcome
 
-
 # An empty stage for a moment (between takes, a board phase) is normal; this many cleaned frames
 # in a row with no depth left is worth a look.
 EMPTY_WARN_FRAMES = 10
