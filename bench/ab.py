@@ -53,7 +53,8 @@ def flatten(doc, prefix='') -> dict[str, float]:
     out = {}
     if isinstance(doc, dict):
         for k, v in doc.items():
-            if k in ('created', 'seconds', 'timings_ms', 'figures', 'wall_s', 'bag', 'calibration', 'folder'):
+            if k in ('created', 'seconds', 'timings_ms', 'figures', 'wall_s', 'bag', 'calibration', 'folder',
+                     'ms_per_frame'):     # timings are bench/'s other scripts' to compare
                 continue
             out.update(flatten(v, f'{prefix}{k}.'))
     elif isinstance(doc, list):
