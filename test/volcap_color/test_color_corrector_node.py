@@ -20,7 +20,7 @@ pytestmark = pytest.mark.ros
 def _calibration(cameras, gain):
     """Every camera with a 3x3 model that scales linear RGB by ``gain``."""
     color = {'method': 'matrix_3x3', 'matrix': (np.eye(3) * gain).tolist()}
-    return Calibration('cam0', 'cam0_color_optical_frame',
+    return Calibration(cameras[0], f'{cameras[0]}_color_optical_frame',     # the reference is a calibrated camera
                        {c: CameraCalibration(np.eye(4), f'{c}_color_optical_frame', color=color) for c in cameras})
 
 

@@ -12,7 +12,7 @@ IMAGE = np.full((6, 8, 3), 100, np.uint8)
 
 def calibration_yaml(cameras=('cam0', 'cam1'), gain=1.5, with_model=True):
     color = {'method': 'matrix_3x3', 'matrix': (np.eye(3) * gain).tolist()} if with_model else None
-    return Calibration('cam0', 'cam0_color_optical_frame',
+    return Calibration(cameras[0], f'{cameras[0]}_color_optical_frame',      # the reference is a calibrated camera
                        {c: CameraCalibration(np.eye(4), f'{c}_color_optical_frame', color=color)
                         for c in cameras}).to_yaml()
 
