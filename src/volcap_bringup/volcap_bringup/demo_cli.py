@@ -26,6 +26,8 @@ class DemoConfig:
     harmonise_epochs: int = setting(40, 'epochs of colour field E in the short neural run', 1, 10_000)
     mapper_epochs: int = setting(20, 'epochs of each camera\'s network D in the short neural run', 1, 10_000)
     scored_frames: int = setting(5, 'fused frames scored against the ground truth', 1, 10_000)
+    run_rate: float = setting(0.04, 'playback speed of the graph run (2 cores: 0.04 fuses every frame set)',
+                              0.001, 10.0)
 
     def harmonise(self) -> dict:
         return {'points': 100_000, 'field_epochs': self.harmonise_epochs, 'field_lr': 5e-4, 'field_lr_final': 5e-5,
@@ -112,7 +114,7 @@ def cmd_demo(args) -> int:
         shutil.rmtree(run)       # a run refuses to overwrite a sequence; the demo makes a new one
     print(f'[6/7] the whole graph on the bag (bag_player, depth_filter and color_corrector x{len(cameras)}, '
           f'tsdf_fusion, each its own process): volcap run -> {run}')
-    result = run_graph(RunConfig(bag, calibration, run))
+    result = run_graph(RunConfig(bag, calibration, run, rate=demo.run_rate))
     print('\n'.join(result.lines()))
     if not result.ok:
         return 1
