@@ -143,6 +143,8 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
             started = clock['started'] = time.monotonic()
             warm = started + cfg.warmup_s
 
+            # never done: spins for cfg.seconds (or until Ctrl-C), noting the CPU times once the
+            # warm-up has passed; a node process that exits ends the run (GraphError)
             def warmed_up() -> bool:
                 if not window and time.monotonic() >= warm:
                     window.update(cpu_start=_process_cpu_s(ps), t=time.monotonic(),

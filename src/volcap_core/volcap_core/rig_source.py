@@ -65,6 +65,8 @@ class RigResolver:
         it (and neither a file nor ``/volcap/rig`` decides), else None."""
         if stream not in ('color', 'depth'):
             raise BadInput(f"stream must be 'color' or 'depth', got {stream!r}")
+        if self.infos.get((camera, stream)) == (model, frame_id):
+            return None          # every frame repeats its camera_info: nothing to assemble again
         if camera not in self.cameras:
             self.cameras.append(camera)
         self.infos[(camera, stream)] = (model, frame_id)

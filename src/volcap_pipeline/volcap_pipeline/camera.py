@@ -82,6 +82,7 @@ class CameraPipeline:
                 color = frame.color
                 if self.correction is not None:
                     corrected = self.correction.apply(frame.color)
+                    # the corrector reuses its output buffer for the next frame: keep this one's
                     color = frame.color if corrected is None else corrected.copy()
                 cleaned = CleanedCamera(self.camera, frame, o.result, o.cleaner, color)
         return outcomes, cleaned
