@@ -69,8 +69,12 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports
 
+# Two workers (pytest-xdist), a test file each at a time: most ROS tests wait on discovery and
+# the player as much as they compute, so two files at once use both cores (docs/benchmarks.md).
+TEST_WORKERS ?= 2
+
 test: lint web chromium
-	$(PY) -m pytest test
+	$(PY) -m pytest test -n $(TEST_WORKERS) --dist loadfile
 
 # No ROS nodes, nothing slow: the algorithms, the nodes' decision classes, packaging and docs.
 test-fast: lint web

@@ -1,7 +1,7 @@
 """A/B: the same commands on the same bag with an older commit and with this checkout, and how
 their figures differ. Restructuring code must not change results; this says whether it did.
 
-    python bench/ab.py BAG --old REV [--calibration CAL] [--out bench_out/ab] [--frames 3]
+    python bench/ab.py BAG --old REV [--calibration CAL] [--out bench_out/ab] [--frames 3] [--run]
 
 The old commit is checked out as a git worktree (``bench_out/ab/old``); each side runs as
 ``python -m volcap_bringup.cli`` with its own ``src/volcap_*`` first on ``PYTHONPATH`` (the same
@@ -11,7 +11,10 @@ The old commit is checked out as a git worktree (``bench_out/ab/old``); each sid
   difference), reprojection RMS, predicted error and colour model;
 - ``volcap eval depth BAG --frames N``: every method's scores;
 - ``volcap eval color BAG --calibration CAL --frames 4 --no-chart``: every method's CIEDE2000 /
-  PSNR / truth scores (CAL: the new side's calibration unless given).
+  PSNR / truth scores (CAL: the new side's calibration unless given);
+- with ``--run``: ``volcap run BAG --calibration CAL --voxel 0.01`` (each side's default graph)
+  and ``volcap eval fusion`` of its sequence: accuracy, completeness, frames fused and every
+  frame's triangle count.
 
 Writes ``OUT/ab.json`` and prints one line per figure that differs (and how many agree).
 """
@@ -88,6 +91,7 @@ def main() -> None:
     p.add_argument('--calibration', help='calibration for eval color (default: the new side\'s)')
     p.add_argument('--out', default='bench_out/ab')
     p.add_argument('--frames', type=int, default=3, help='capture frame sets for eval depth')
+    p.add_argument('--run', action='store_true', help='also compare volcap run + eval fusion')
     args = p.parse_args()
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -114,8 +118,18 @@ def main() -> None:
         d = out / f'{side}_out'
         times[side]['eval color'] = volcap(tree, 'eval', 'color', args.bag, '--calibration', calibration,
                                            '--frames', 4, '--no-chart', '--json', d / 'colour.json', '--quiet')
+        if args.run:
+            times[side]['run'] = volcap(tree, 'run', args.bag, '--calibration', calibration, '--out', d / 'run',
+                                        '--voxel', 0.01, '--quiet')
+            volcap(tree, 'eval', 'fusion', d / 'run', args.bag, '--json', d / 'fusion.json', '--quiet')
+            metrics = json.loads((d / 'run' / 'metrics.json').read_text())
+            (d / 'run_frames.json').write_text(json.dumps(
+                {'frames_written': metrics['frames_written'], 'triangles': [f['triangles'] for f in metrics['frames']],
+                 'missing': [len(f['missing']) for f in metrics['frames']]}))
     load = {'calibration': lambda p: yaml.safe_load(p.read_text()), 'depth': lambda p: json.loads(p.read_text()),
             'colour': lambda p: json.loads(p.read_text())}
+    if args.run:
+        load.update({'fusion': lambda p: json.loads(p.read_text()), 'run_frames': lambda p: json.loads(p.read_text())})
     for name, fn in load.items():
         suffix = '.yaml' if name == 'calibration' else '.json'
         result['commands'][name] = compare(name, fn(out / 'old_out' / f'{name}{suffix}'),

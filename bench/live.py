@@ -2,8 +2,11 @@
 real time with fresh stamps, a renderer stand-in receiving every mesh.
 
     .venv/bin/python bench/live.py BAG CALIBRATION [--seconds 60] [--voxels 0.01,0.006] [--composed]
+        [--split-stages]
 
-Per voxel size (and with ``--composed``, also every node in one process), after a warm-up:
+Per voxel size (and with ``--composed``, also every node in one process; with ``--split-stages``,
+also each camera's depth_filter and color_corrector as two processes instead of one
+camera_pipeline), after a warm-up:
 - delivered meshes/s at the renderer, latency p50/p95 from capture stamp to the mesh's arrival,
   the share of meshes fused from all cameras, the admission the controller settled on, drops
   per stage per second (the stages' own, and admitted frames that never reached them);
@@ -60,11 +63,11 @@ def memory_sampler(stop: threading.Event, samples: list, per_process: dict, peri
 
 
 def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: float, composed: bool,
-            source_nice: int = 0) -> dict:
+            source_nice: int = 0, split_stages: bool = False) -> dict:
     from volcap_bringup.live import LiveConfig, latency_ms, run_live, summary_figures
     from volcap_bringup.live_controller import LiveController
     cfg = LiveConfig(calibration, bag=bag, voxel_size=voxel, seconds=seconds, warmup_s=warmup, composed=composed,
-                     probe=True, source_nice=source_nice)
+                     probe=True, source_nice=source_nice, split_stages=split_stages)
     stop, memory, per_process = threading.Event(), [], {}
     sampler = threading.Thread(target=memory_sampler, args=(stop, memory, per_process), daemon=True)
     sampler.start()
@@ -96,7 +99,8 @@ def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: fl
         key = name.split('/')[0]
         grouped[key] = grouped.get(key, 0.0) + v
     return {
-        'voxel_size': voxel, 'mode': result['mode'] + (f', player nice {source_nice}' if source_nice else ''),
+        'voxel_size': voxel, 'mode': result['mode'] + (', split stages' if split_stages else '')
+        + (f', player nice {source_nice}' if source_nice else ''),
         'seconds_measured': window, 'cameras': len(result['cameras']),
         'delivered_meshes_per_s': delivered,
         'latency_ms_p50': float(np.percentile(lat, 50)) if lat.size else None,
@@ -166,18 +170,23 @@ def main() -> int:
     ap.add_argument('--warmup', type=float, default=15.0)
     ap.add_argument('--voxels', default='0.01,0.006')
     ap.add_argument('--composed', action='store_true', help='also run every node in one process (10 mm)')
+    ap.add_argument('--split-stages', action='store_true',
+                    help='also run each camera as a depth_filter and a color_corrector process (the first voxel size)')
     ap.add_argument('--source-nice', type=int, default=0,
                     help='run the bag player at this niceness (standing in for drivers on cores of their own)')
     ap.add_argument('--out', default=str(REPO / 'bench_out'))
     args = ap.parse_args()
     runs = []
-    plan = [(float(v), False) for v in args.voxels.split(',')]
+    first = float(args.voxels.split(',')[0])
+    plan = [(float(v), False, False) for v in args.voxels.split(',')]
     if args.composed:
-        plan.append((float(args.voxels.split(',')[0]), True))
-    for voxel, composed in plan:
-        print(f'{voxel * 1000:.0f} mm voxels, {"composed" if composed else "processes"}: '
-              f'{args.seconds:.0f} s after the graph is up', flush=True)
-        r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed, args.source_nice)
+        plan.append((first, True, False))
+    if args.split_stages:
+        plan.append((first, False, True))
+    for voxel, composed, split in plan:
+        print(f'{voxel * 1000:.0f} mm voxels, {"composed" if composed else "processes"}'
+              f'{", split stages" if split else ""}: {args.seconds:.0f} s after the graph is up', flush=True)
+        r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed, args.source_nice, split)
         r['memory_mb_per_minute'] = growth_per_minute(r['memory_mb'])
         r['process_mb_per_minute'] = {name: growth_per_minute(series)
                                       for name, series in r['memory_mb_per_process'].items()}

@@ -6,7 +6,18 @@ from pathlib import Path
 
 import pytest
 
-os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
+
+def _domain_id() -> int:
+    """A ROS domain of this test process's own (0-101 are safe on Linux). The workers of one
+    parallel run (pytest-xdist ``gw0``, ``gw1``, ...; their parent is the run's controller) get
+    neighbouring domains, so no two of them share one; a plain run takes one from its pid."""
+    worker = os.environ.get('PYTEST_XDIST_WORKER', '')
+    if worker.startswith('gw') and worker[2:].isdigit():
+        return 1 + (os.getppid() % 25) * 4 + int(worker[2:]) % 4
+    return 1 + os.getpid() % 100
+
+
+os.environ['ROS_DOMAIN_ID'] = str(_domain_id())
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 REPO = Path(__file__).resolve().parents[1]
@@ -108,16 +119,18 @@ def gt_calibration():
 
 
 @pytest.fixture
-def ros_context():
-    """An rclpy context for one test, shut down afterwards."""
-    import rclpy
+def graph():
+    """The test's graph session, the one the commands use (``volcap_bringup.session.GraphSession``):
+    transport, rclpy, one executor the test's probes spin in; everything shut down afterwards."""
+    from volcap_bringup.session import GraphSession
+    with GraphSession('volcap_test') as session:
+        yield session
 
-    from volcap_core import transport
-    transport.configure()
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    yield context
-    context.try_shutdown()
+
+@pytest.fixture
+def ros_context(graph):
+    """The rclpy context of the test's graph session (for nodes a test builds itself)."""
+    return graph.node.context
 
 
 @pytest.fixture
@@ -135,14 +148,13 @@ def procs():
 
 
 class Probe:
-    """Subscribes to topics in the test process and records (receive time, message)."""
+    """Subscribes to topics in the test process and records (receive time, message); its node is
+    hosted by the test's graph session and spins there."""
 
-    def __init__(self, context, subscriptions):
+    def __init__(self, graph, subscriptions):
         import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        self.node = rclpy.create_node('probe', context=context)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
+        self.graph = graph
+        self.node = graph.host(rclpy.create_node('probe', context=graph.node.context))
         self.got = {topic: [] for topic, _, _ in subscriptions}
         for topic, kind, profile in subscriptions:
             self.subscribe(topic, kind, profile)
@@ -153,12 +165,7 @@ class Probe:
                                       profile)
 
     def spin_until(self, done, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=0.05)
-            if done():
-                return True
-        return False
+        return self.graph.spin_until(done, timeout)
 
     def assert_all_arrive(self, topics, timeout):
         assert self.spin_until(lambda: all(self.got[t] for t in topics), timeout=timeout), \
@@ -166,18 +173,17 @@ class Probe:
 
     def close(self):
         if self.node is not None:
-            self.executor.shutdown()
-            self.node.destroy_node()
+            self.graph.release(self.node)
             self.node = None
 
 
 @pytest.fixture
-def probe_factory(ros_context):
-    """Makes Probes on the test's rclpy context; each is closed afterwards."""
+def probe_factory(graph):
+    """Makes Probes in the test's graph session; each is closed afterwards."""
     probes = []
 
     def make(subscriptions):
-        probes.append(Probe(ros_context, subscriptions))
+        probes.append(Probe(graph, subscriptions))
         return probes[-1]
     yield make
     for p in probes:

@@ -24,6 +24,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'camera_pipeline = volcap_pipeline.camera_pipeline_node:main',
         ],
     },
 )

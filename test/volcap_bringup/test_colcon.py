@@ -92,6 +92,7 @@ def test_executables_start_from_the_install_space(install, pkg, exe, studio_bag,
               'depth_filter': {'camera': 'cam0'},
               'calibration_service': {'output': str(tmp_path / 'calibration.yaml')},
               'color_corrector': {'camera': 'cam0'},
+              'camera_pipeline': {'camera': 'cam0'},
               'tsdf_fusion': {'voxel_size': 0.01}}[exe]
     proc = run_installed(install, pkg, exe, params, shared_data)
     try:

@@ -19,7 +19,8 @@ def test_every_node_parameter_is_documented():
     for spec in ('volcap_filter.session:DepthFilterNodeConfig', 'volcap_filter.pipeline:DepthFilterConfig',
                  'volcap_fusion.frame_sets:FusionNodeConfig', 'volcap_fusion.tsdf:FusionConfig',
                  'volcap_calib.session:CalibrationServiceConfig',
-                 'volcap_color.color_corrector_node:ColorCorrectorConfig', 'volcap_driver.playback:BagPlayerConfig',
+                 'volcap_color.color_corrector_node:ColorCorrectorConfig', 'volcap_color.config:ColorCorrectionConfig',
+                 'volcap_driver.playback:BagPlayerConfig',
                  'volcap_driver.recorder_node:RecorderConfig', 'volcap_studio.synthetic_rig_node:SyntheticRigConfig'):
         assert spec in classes, f'{spec} has no parameter table in docs/'
 

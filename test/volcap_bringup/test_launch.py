@@ -56,10 +56,10 @@ def _launched(module, **overrides):
 def test_launch_starts_the_rig_graph(launch_file):
     nodes = _launched(launch_file, cameras='3', calibration='/rig/calibration.yaml', output_dir='/takes/1')
     started = [(n.kwargs['package'], n.kwargs['executable'], n.kwargs['namespace']) for n in nodes]
+    # one process per camera: colour and depth received once, beside the driver
     assert started == [('volcap_calib', 'calibration_service', None)] \
-        + [('volcap_filter', 'depth_filter', f'cam{i}') for i in range(3)] \
-        + [('volcap_color', 'color_corrector', f'cam{i}') for i in range(3)] + [('volcap_fusion', 'tsdf_fusion', None)] \
-        + [('volcap_bringup', 'live_controller', None)]
+        + [('volcap_pipeline', 'camera_pipeline', f'cam{i}') for i in range(3)] \
+        + [('volcap_fusion', 'tsdf_fusion', None)] + [('volcap_bringup', 'live_controller', None)]
     assert all((n.kwargs['package'], n.kwargs['executable']) in NODES for n in nodes)   # every one is a real node
     params = [n.kwargs['parameters'][0] for n in nodes]
     assert params[0] == {'output': '/rig/calibration.yaml'}
@@ -69,6 +69,10 @@ def test_launch_starts_the_rig_graph(launch_file):
     offline = [n.kwargs['parameters'][0] for n in _launched(launch_file, cameras='3', live='false')]
     assert offline[1] == {'output_scale': 1.0}     # every frame set, at the colour size, 4 mm voxels
     assert offline[-1] == {'voxel_size': 0.004, 'output_dir': '', 'device': 'auto'}
+    split = _launched(launch_file, cameras='3', split_stages='true')
+    assert [(n.kwargs['executable'], n.kwargs['namespace']) for n in split[1:7]] == \
+        [('depth_filter', f'cam{i}') for i in range(3)] + [('color_corrector', f'cam{i}') for i in range(3)]
+    assert split[1].kwargs['parameters'] == [{'output_scale': 0.5}] and split[4].kwargs['parameters'] == [{}]
 
 
 def test_launch_replays_a_bag_as_the_frame_source(launch_file):
@@ -79,20 +83,19 @@ def test_launch_replays_a_bag_as_the_frame_source(launch_file):
     assert nodes[-2].kwargs['parameters'][0]['voxel_size'] == 0.01
     half = _launched(launch_file, depth_width='640', depth_height='360')
     assert half[1].kwargs['parameters'] == [{'output_width': 640, 'output_height': 360, 'output_scale': 0.5}]
-    assert len(nodes) == 1 + 1 + 2 * 2 + 1 + 1
+    assert len(nodes) == 1 + 1 + 2 + 1 + 1
 
 
 def test_launch_on_vendor_drivers_remaps_every_camera(launch_file):
     nodes = _launched(launch_file, cameras='2', driver='azure_kinect', registered='true', color_format='jpeg',
                       rig_file='/rig/rig.yaml')
     by_name = {(n.kwargs['executable'], n.kwargs['namespace']): n.kwargs for n in nodes}
-    depth_filter = by_name[('depth_filter', 'cam1')]
-    assert dict(depth_filter['remappings']) == {
+    camera = by_name[('camera_pipeline', 'cam1')]
+    assert dict(camera['remappings']) == {
         'color/image_raw': 'rgb/image_raw', 'color/image_raw/compressed': 'rgb/image_raw/compressed',
         'color/camera_info': 'rgb/camera_info', 'depth/image_raw': 'depth_to_rgb/image_raw',
         'depth/camera_info': 'depth_to_rgb/camera_info'}
-    assert depth_filter['parameters'] == [{'output_scale': 0.5, 'color_transport': 'compressed', 'rig_file': '/rig/rig.yaml'}]
-    assert by_name[('color_corrector', 'cam0')]['parameters'] == [{'color_transport': 'compressed'}]
+    assert camera['parameters'] == [{'output_scale': 0.5, 'color_transport': 'compressed', 'rig_file': '/rig/rig.yaml'}]
     service = dict(by_name[('calibration_service', None)]['remappings'])
     assert service['cam1/color/image_raw/compressed'] == 'cam1/rgb/image_raw/compressed'
     assert by_name[('tsdf_fusion', None)]['remappings'] == []

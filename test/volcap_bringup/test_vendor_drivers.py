@@ -61,9 +61,10 @@ class VendorDriver:
 @pytest.mark.parametrize('layout,registered,color_format', [
     ('azure_kinect', False, 'jpeg'), ('azure_kinect', True, 'raw'), ('orbbec', False, 'raw'),
     ('orbbec', True, 'jpeg')])
-def test_filter_corrector_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag, layout, registered, color_format,
+def test_camera_pipeline_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag, layout, registered, color_format,
                                                                          ros_context, procs, probe_factory):
-    """One real camera: cleaned depth, corrected colour and, from that camera alone, a mesh."""
+    """One real camera, its camera_pipeline on the driver's topics: cleaned depth, corrected colour
+    and, from that camera alone, a mesh."""
     with BagReader(k4a_bag) as reader:
         cam = read_rig(reader).cameras[0]
     frame = next(frame_sets(k4a_bag)).cameras['cam0']
@@ -75,8 +76,7 @@ def test_filter_corrector_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag
     probe = probe_factory([(t, kind, qos.EVERY_FRAME) for t, kind in outputs]
                           + [('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     try:
-        procs.append(start_node('volcap_filter', 'depth_filter', params, namespace='cam0', remaps=remaps))
-        procs.append(start_node('volcap_color', 'color_corrector', params, namespace='cam0', remaps=remaps))
+        procs.append(start_node('volcap_pipeline', 'camera_pipeline', params, namespace='cam0', remaps=remaps))
         procs.append(start_node('volcap_fusion', 'tsdf_fusion', {'min_cameras': 1, 'voxel_size': 0.01}))
         # the world is this camera's colour frame: a calibration as the service would latch it
         calibration = Calibration('cam0', frame_ids(layout, 'cam0')[0],
@@ -91,9 +91,9 @@ def test_filter_corrector_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag
         assert all(probe.got[t] for t, _ in outputs), f'no output on {[t for t, _ in outputs if not probe.got[t]]}'
 
         def no_plate_warning():
-            # no clean plate was learnt: the filter says so (WARN, naming the service), not OK
+            # no clean plate was learnt: the pipeline says so (WARN, naming the service), not OK
             return any('capture_clean_plate' in s.message and s.level == b'\x01'
-                       for _, m in probe.got['/' + topics.DIAGNOSTICS] for s in m.status if 'depth filter' in s.name)
+                       for _, m in probe.got['/' + topics.DIAGNOSTICS] for s in m.status if 'camera pipeline' in s.name)
         assert probe.spin_until(no_plate_warning, timeout=15)
     finally:
         probe.close()

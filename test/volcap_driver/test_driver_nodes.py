@@ -38,7 +38,8 @@ def test_player_replays_with_original_stamps_and_latched_rig(studio_bag, probe_f
 
 def test_late_subscriber_still_gets_the_rig(studio_bag, probe_factory, procs, play):
     early = probe_factory([('cam0/depth/image_raw', Image, qos.EVERY_FRAME)])
-    play(studio_bag, exit_when_done=False, topics=['cam0/depth/image_raw', 'volcap/rig'])
+    # nobody subscribes to the rig yet: the player need not wait for anyone there
+    play(studio_bag, exit_when_done=False, topics=['cam0/depth/image_raw', 'volcap/rig'], subscribers=['volcap/rig=0'])
     assert early.spin_until(lambda: len(early.got['cam0/depth/image_raw']) == 5, 60)
     late = probe_factory([('volcap/rig', String, qos.LATCHED)])
     assert late.spin_until(lambda: late.got['volcap/rig'], 20)

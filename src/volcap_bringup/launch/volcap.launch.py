@@ -1,6 +1,7 @@
 """The volcap graph on a rig: calibration service (publishes calibration.yaml on start), one
-depth_filter and one color_corrector per camera namespace, and tsdf_fusion; optionally the bag
-player as the frame source instead of camera drivers.
+camera_pipeline per camera namespace (``split_stages:=true``: a depth_filter and a
+color_corrector instead), and tsdf_fusion; optionally the bag player as the frame source
+instead of camera drivers.
 
     ros2 launch volcap_bringup volcap.launch.py calibration:=/rig/calibration.yaml \\
         cameras:=8 output_dir:=/captures/take1 [bag:=/captures/studio] [voxel_size:=0.006]
@@ -41,6 +42,8 @@ ARGUMENTS = {
                    'depth_registration)'),
     'color_format': ('raw', 'colour as raw images or jpeg (CompressedImage on .../image_raw/compressed)'),
     'rig_file': ('', 'rig description YAML (`volcap rig`) instead of /tf_static for the depth-to-colour extrinsic'),
+    'split_stages': ('false', 'each camera\'s depth_filter and color_corrector as two nodes instead of one '
+                     'camera_pipeline'),
 }
 
 
@@ -64,7 +67,8 @@ def _nodes(context):
     graph = rig_graph(cameras, source, {c: {**depth_size, **inputs} for c in cameras},
                       {'color_transport': 'compressed'} if arg['color_format'] == 'jpeg' else {}, fusion,
                       calibration_service={'output': arg['calibration'], **inputs}, driver=arg['driver'],
-                      registered=arg['registered'].lower() in ('true', '1', 'yes'))
+                      registered=arg['registered'].lower() in ('true', '1', 'yes'),
+                      split_stages=arg['split_stages'].lower() in ('true', '1', 'yes'))
     if live:
         graph.append(live_controller(cameras, {}, arg['driver'], arg['registered'].lower() in ('true', '1', 'yes')))
     return [Node(package=package, executable=executable, namespace=namespace or None, parameters=[params],

@@ -112,8 +112,8 @@ def cmd_demo(args) -> int:
     run = out / 'run'
     if run.exists():
         shutil.rmtree(run)       # a run refuses to overwrite a sequence; the demo makes a new one
-    print(f'[6/7] the whole graph on the bag (bag_player, depth_filter and color_corrector x{len(cameras)}, '
-          f'tsdf_fusion, each its own process): volcap run -> {run}')
+    print(f'[6/7] the whole graph on the bag (bag_player, camera_pipeline x{len(cameras)}, tsdf_fusion, each its '
+          f'own process): volcap run -> {run}')
     result = run_graph(RunConfig(bag, calibration, run, rate=demo.run_rate))
     print('\n'.join(result.lines()))
     if not result.ok:

@@ -58,14 +58,27 @@ def stream_remaps(camera: str, streams: dict[str, str]) -> tuple[dict[str, str],
     return remaps, params
 
 
+# The per-camera process: one camera_pipeline per camera (colour and depth received once), or
+# the depth filter and the colour corrector apart (two processes, colour received by both).
+PER_CAMERA = {False: [('volcap_pipeline', 'camera_pipeline')],
+              True: [('volcap_filter', 'depth_filter'), ('volcap_color', 'color_corrector')]}
+
+
+def camera_nodes(split_stages: bool = False) -> list[str]:
+    """The node names of one camera's work (``split_stages``: the two separate stages)."""
+    return [executable for _, executable in PER_CAMERA[split_stages]]
+
+
 def rig_graph(cameras: list[str], source: tuple[str, str, dict] | None, filters: dict[str, dict],
               corrector: dict, fusion: dict, calibration_service: dict | None = None, driver: str = 'volcap',
-              registered: bool = False, remaps: dict[str, dict[str, str]] | None = None) -> list[NodeSpec]:
+              registered: bool = False, remaps: dict[str, dict[str, str]] | None = None,
+              split_stages: bool = False) -> list[NodeSpec]:
     """Every node of one rig's graph in start order: the frame source (a camera driver or the
     bag player, None when the cameras run elsewhere), the calibration service when given, one
-    depth_filter (``filters[camera]``) and one color_corrector per camera namespace, and the
-    fusion. ``driver`` and ``registered`` say whose topics the nodes are remapped onto;
-    ``remaps`` (per camera) replaces that when given."""
+    camera_pipeline per camera namespace (the depth filter's parameters ``filters[camera]`` and
+    the colour correction's ``corrector``; with ``split_stages`` a depth_filter and a
+    color_corrector instead) and the fusion. ``driver`` and ``registered`` say whose topics the
+    nodes are remapped onto; ``remaps`` (per camera) replaces that when given."""
     per_camera = camera_remaps(driver, registered)
     camera_maps = remaps or {c: per_camera for c in cameras}
     nodes: list[NodeSpec] = []
@@ -76,9 +89,14 @@ def rig_graph(cameras: list[str], source: tuple[str, str, dict] | None, filters:
         # in the root namespace: the camera prefix goes on both sides
         service_remaps = {f'{c}/{k}': f'{c}/{v}' for c in cameras for k, v in camera_maps.get(c, {}).items()}
         nodes.append(('volcap_calib', 'calibration_service', '', dict(calibration_service), service_remaps))
-    nodes += [('volcap_filter', 'depth_filter', c, dict(filters.get(c, {})), dict(camera_maps.get(c, {})))
-              for c in cameras]
-    nodes += [('volcap_color', 'color_corrector', c, dict(corrector), dict(camera_maps.get(c, {}))) for c in cameras]
+    if split_stages:
+        nodes += [('volcap_filter', 'depth_filter', c, dict(filters.get(c, {})), dict(camera_maps.get(c, {})))
+                  for c in cameras]
+        nodes += [('volcap_color', 'color_corrector', c, dict(corrector), dict(camera_maps.get(c, {})))
+                  for c in cameras]
+    else:
+        nodes += [('volcap_pipeline', 'camera_pipeline', c, {**filters.get(c, {}), **corrector},
+                   dict(camera_maps.get(c, {}))) for c in cameras]
     nodes.append(('volcap_fusion', 'tsdf_fusion', '', dict(fusion), {}))
     return nodes
 
@@ -106,6 +124,8 @@ class RunConfig:
     depth_upsample: int = setting(1, 'depth resampled this many times finer before integration', 1, 4)
     half_depth: bool = setting(False, 'clean depth at half the colour size (less to clean and send, coarser: '
                                '2.7 mm against 1.3 mm at 4 mm voxels on the demo bag)')
+    split_stages: bool = setting(False, 'each camera\'s depth filter and colour corrector as two nodes (else one '
+                                 'camera_pipeline per camera)')
     settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
     progress: bool = True
 
@@ -125,6 +145,8 @@ class LiveConfig:
     every: int = setting(0, 'admit one frame set in N (0: chosen from the measured load)', 0, 1000)
     latency_budget_ms: float = setting(1000.0, 'the latency the admission keeps under (ms)', 10.0, 60_000.0)
     composed: bool = setting(False, 'run every node in this process')
+    split_stages: bool = setting(False, 'each camera\'s depth filter and colour corrector as two nodes (else one '
+                                 'camera_pipeline per camera)')
     output_dir: str = setting('', 'also write the sequence here (empty: no sequence)')
     rig_file: str = setting('', 'rig description YAML for the depth-to-colour extrinsic')
     rate: float = setting(1.0, 'with --bag, its playback speed (1: real time)', 0.01, 10.0)

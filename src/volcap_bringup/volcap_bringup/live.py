@@ -71,7 +71,7 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
         corrector.update(maps[cameras[0]][1])
         remaps = {c: maps[c][0] for c in cameras}
         played = [t for c in cameras for t in layout[c].values()] + [topics.RIG, topics.PHASE, topics.TF_STATIC]
-        expected = expected_subscribers(cameras, layout, played, controller=True)
+        expected = expected_subscribers(cameras, layout, played, controller=True, split_stages=cfg.split_stages)
         source = ('volcap_driver', 'bag_player', {
             'bag': str(cfg.bag), 'rate': cfg.rate, 'loop': True, 'restamp': True, 'loop_offset': loop_offset,
             'max_lag_ms': 100.0,      # a camera drops what it cannot send in time
@@ -92,7 +92,7 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
             filters[c]['rig_file'] = cfg.rig_file
     for c in cameras:
         filters[c]['output_scale'] = cfg.depth_scale
-    nodes = rig_graph(cameras, source, filters, corrector, fusion, remaps=remaps)
+    nodes = rig_graph(cameras, source, filters, corrector, fusion, remaps=remaps, split_stages=cfg.split_stages)
     nodes.append(live_controller(cameras, {'every': cfg.every, 'latency_budget_ms': cfg.latency_budget_ms},
                                  remaps=remaps))
     return nodes, cameras, layout
@@ -134,7 +134,7 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
             probe = session.host(RendererProbe(reliable=False)) if cfg.probe else None
             session.compose(controller_spec, on_summary=summarised)
             session.start_graph(graph, cfg.composed)
-            session.wait_until_subscribed(graph_subscriptions(cameras, layout), timeout=120.0)
+            session.wait_until_subscribed(graph_subscriptions(cameras, layout, cfg.split_stages), timeout=120.0)
             if source is not None:
                 nice = cfg.source_nice
                 session.start(source, preexec_fn=(lambda: os.nice(nice)) if nice else None)
@@ -183,8 +183,9 @@ def summary_figures(summaries: list[dict], warmup_s: float) -> dict:
     shares = [(s['complete_share'], s['meshes_per_s']) for s in after if s['complete_share'] is not None]
     p95 = [s['latency_ms_p95'] for s in after if s['latency_ms_p95'] is not None]
     p50 = [s['latency_ms_p50'] for s in after if s['latency_ms_p50'] is not None]
-    drops = {stage: {k: float(np.mean([s['drops_per_s'][stage][k] for s in after]))
-                     for k in after[0]['drops_per_s'][stage]} for stage in after[0]['drops_per_s']}
+    stages = {stage: keys for s in after for stage, keys in s['drops_per_s'].items()}   # any that reported
+    drops = {stage: {k: float(np.mean([s['drops_per_s'].get(stage, {}).get(k, 0.0) for s in after])) for k in keys}
+             for stage, keys in stages.items()}
     weight = sum(m for _, m in shares)
     return {'seconds': len(after), 'meshes_per_s': float(meshes.mean()),
             'input_fps': float(np.mean([s['input_fps'] for s in after])),

@@ -32,7 +32,7 @@ from volcap_core.conversions import stamp_to_ns
 from volcap_core.ros import Diagnostics, declare_config, run_node
 from volcap_core.settings import setting
 
-STAGES = ('depth_filter', 'color_corrector', 'tsdf_fusion')
+STAGES = ('camera_pipeline', 'depth_filter', 'color_corrector', 'tsdf_fusion')
 
 
 @dataclass
@@ -130,8 +130,10 @@ class LiveController(Node):
 
     def _summarise(self, dt: float) -> dict:
         """This period's figures, from the stages' counters (their change since the last period)."""
-        drops = {s: {'dropped': 0.0, 'missed': 0.0, 'not_admitted': 0.0} for s in STAGES}
-        work_s = dict.fromkeys(STAGES, 0.0)
+        # the stages this graph runs (a camera_pipeline per camera, or a filter and a corrector)
+        stages = [s for s in STAGES if any(stage_of(n) == s for n in self.reports)]
+        drops = {s: {'dropped': 0.0, 'missed': 0.0, 'not_admitted': 0.0} for s in stages}
+        work_s = dict.fromkeys(stages, 0.0)
         fusion = {}
         for name, values in self.reports.items():
             stage = stage_of(name)
@@ -158,7 +160,7 @@ class LiveController(Node):
         work_ms = {s: round(1000 * w / fused, 1) for s, w in work_s.items()} if fused else None
         bound = round(psutil.cpu_count() * 1000 / sum(work_ms.values()), 2) if work_ms and sum(work_ms.values()) \
             else None
-        return {'work_ms_per_set': work_ms, 'compute_bound': bound,'input_fps': round(input_fps, 2), 'meshes_per_s': round(fused / dt, 2),
+        return {'work_ms_per_set': work_ms, 'compute_bound': bound, 'input_fps': round(input_fps, 2), 'meshes_per_s': round(fused / dt, 2),
                 'complete_share': round(fusion.get('fused_complete', 0.0) / fused, 3) if fused else None,
                 'latency_ms_p50': fusion.get('latency_ms_p50'), 'latency_ms_p95': p95,
                 'cpu_busy': round(psutil.cpu_percent() / 100.0, 3),

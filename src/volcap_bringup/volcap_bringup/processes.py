@@ -18,6 +18,7 @@ NODES = {
     ('volcap_calib', 'calibration_service'): ('volcap_calib.calibration_service_node', 'CalibrationService'),
     ('volcap_filter', 'depth_filter'): ('volcap_filter.depth_filter_node', 'DepthFilter'),
     ('volcap_color', 'color_corrector'): ('volcap_color.color_corrector_node', 'ColorCorrector'),
+    ('volcap_pipeline', 'camera_pipeline'): ('volcap_pipeline.camera_pipeline_node', 'CameraPipelineNode'),
     ('volcap_fusion', 'tsdf_fusion'): ('volcap_fusion.tsdf_fusion_node', 'TsdfFusionNode'),
     ('volcap_bringup', 'live_controller'): ('volcap_bringup.live_controller', 'LiveController'),
 }

@@ -1,7 +1,7 @@
 """`volcap run`: a bag through the whole graph, as on a rig.
 
-bag_player, depth_filter and color_corrector per camera, and tsdf_fusion each run in their own
-process (``ros2 run`` style; ``composed``: all in this process on one executor). This process
+bag_player, a camera_pipeline per camera (``split_stages``: a depth_filter and a color_corrector),
+and tsdf_fusion each run in their own process (``ros2 run`` style; ``composed``: all in this process on one executor). This process
 publishes the calibration (latched, as calibration_service does on a rig) and hosts
 ``RendererProbe``, a subscriber standing in for a telepresence renderer: it receives every
 fused cloud and mesh and measures latency from the moment a frame set entered the graph (its
@@ -24,7 +24,7 @@ from volcap_core.files import write_json
 from volcap_core.frames import camera_topics, read_rig
 from volcap_core.rig import Rig
 
-from .graph import NodeSpec, RunConfig, rig_graph, stream_remaps
+from .graph import NodeSpec, RunConfig, camera_nodes, rig_graph, stream_remaps
 from .probe import RendererProbe
 from .session import GraphSession, spec_name
 
@@ -35,7 +35,7 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True, 'in_order': False,
               'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
-    expected = expected_subscribers(cameras, layout, played, probe=True)
+    expected = expected_subscribers(cameras, layout, played, probe=True, split_stages=cfg.split_stages)
     player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,
               'exit_when_done': not cfg.composed, 'subscribers': [f'{t}={n}' for t, n in expected.items() if n]}
     # The nodes sit on whatever topics the bag holds (volcap's or a vendor driver's), as on a rig.
@@ -49,20 +49,23 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
             filters[c].update(output_width=color.width // 2, output_height=color.height // 2)
     corrector = {'reliable': True, **maps[cameras[0]][1]}
     return rig_graph(cameras, ('volcap_driver', 'bag_player', player), filters, corrector, fusion,
-                     remaps={c: maps[c][0] for c in cameras})
+                     remaps={c: maps[c][0] for c in cameras}, split_stages=cfg.split_stages)
 
 
 def expected_subscribers(cameras: list[str], layout: dict[str, dict[str, str]], played: list[str],
-                         probe: bool = False, controller: bool = False) -> dict[str, int]:
+                         probe: bool = False, controller: bool = False, split_stages: bool = False
+                         ) -> dict[str, int]:
     """How many subscribers each played topic gets in the rig graph (the player waits for all of
-    them): a filter and a corrector on colour, a filter on depth, the filters and the fusion on
-    the phase; ``probe`` adds the renderer probe on the first colour, ``controller`` the live
-    controller on the first and last cameras' camera_info."""
+    them): each camera's pipeline on its colour and depth (with ``split_stages`` a filter and a
+    corrector on colour, a filter on depth), the pipelines and the fusion on the phase;
+    ``probe`` adds the renderer probe on the first colour, ``controller`` the live controller on
+    the first and last cameras' camera_info."""
     expected = {t: 0 for t in played}
+    on_color = 2 if split_stages else 1
     for c in cameras:
-        expected[layout[c]['color']] = 2 + (probe and c == cameras[0])
+        expected[layout[c]['color']] = on_color + (probe and c == cameras[0])
         watched = controller and c in (cameras[0], cameras[-1])     # the live controller's clock
-        expected[layout[c]['color_info']] = 2 + watched
+        expected[layout[c]['color_info']] = on_color + watched
         expected[layout[c]['depth']] = 1
         expected[layout[c]['depth_info']] = 1 + watched
     for t in (topics.RIG, topics.TF_STATIC):
@@ -96,7 +99,7 @@ def run_graph(cfg: RunConfig) -> dict:
         # The player starts last, once every node subscribes: frames sent earlier would be lost.
         player, graph = nodes[0], nodes[1:]
         session.start_graph(graph, cfg.composed)
-        session.wait_until_subscribed(graph_subscriptions(cameras, layout), timeout=120.0)
+        session.wait_until_subscribed(graph_subscriptions(cameras, layout, cfg.split_stages), timeout=120.0)
         if cfg.composed:
             player_node = session.compose(player)
 
@@ -147,14 +150,17 @@ def _capture_sets(reader: BagReader, color_topic: str) -> int:
     return sum(1 for k in at if k >= 0 and phases[k] == topics.CAPTURE)
 
 
-def graph_subscriptions(cameras: list[str], layout: dict) -> dict[str, set[tuple[str, str]]]:
-    """What a rig graph is up with: every camera's raw colour subscribed by its filter and
-    corrector, its raw depth by a filter, and its cleaned depth and corrected colour by the
-    fusion, as (namespace, node) per fully qualified topic."""
+def graph_subscriptions(cameras: list[str], layout: dict, split_stages: bool = False
+                        ) -> dict[str, set[tuple[str, str]]]:
+    """What a rig graph is up with: every camera's raw colour subscribed by its per-camera nodes
+    (``graph.camera_nodes``), its raw depth by the one that cleans depth, and its cleaned depth
+    and corrected colour by the fusion, as (namespace, node) per fully qualified topic."""
+    per_camera = camera_nodes(split_stages)
+
     def wanted(cam):
         ns = '/' + cam
-        return {layout[cam]['color']: {(ns, 'depth_filter'), (ns, 'color_corrector')},
-                layout[cam]['depth']: {(ns, 'depth_filter')},
+        return {layout[cam]['color']: {(ns, n) for n in per_camera},
+                layout[cam]['depth']: {(ns, per_camera[0])},
                 topics.camera_topic(cam, topics.DEPTH_CLEAN): {('/', 'tsdf_fusion')},
                 topics.camera_topic(cam, topics.COLOR_CORRECTED): {('/', 'tsdf_fusion')}}
     return {'/' + t: nodes for cam in cameras for t, nodes in wanted(cam).items()}

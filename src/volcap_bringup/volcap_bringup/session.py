@@ -117,6 +117,14 @@ class GraphSession:
         self.hosted.append(node)
         return node
 
+    def release(self, node: Node) -> None:
+        """Stop spinning a hosted ``node`` before the end, and destroy it."""
+        if node in self.hosted:
+            self.hosted.remove(node)
+            if self.executor is not None:
+                self.executor.remove_node(node)
+            node.destroy_node()
+
     def compose(self, spec: NodeSpec, **node_options) -> Node:
         """The node of ``spec`` instantiated and hosted in this process."""
         node = self.host(compose(*spec, **node_options))

@@ -33,17 +33,14 @@ from volcap_core.conversions import MessageConversionError, color_message_to_rgb
 from volcap_core.ros import AdmissionListener, Diagnostics, color_message_type, declare_config, run_node, subscribe_color
 from volcap_core.settings import color_transport_setting, setting
 
+from .config import ColorCorrectionConfig
 from .corrector import CameraCorrection
 
 
 @dataclass
-class ColorCorrectorConfig:
+class ColorCorrectorConfig(ColorCorrectionConfig):
     camera: str = setting('', 'camera name in the calibration (empty: the last part of the namespace)',
                           read_only=True)
-    passthrough: bool = setting(True, 'publish uncorrected images while there is no colour model (false: drop '
-                                'them)')
-    neural_models: str = setting('', 'volcap harmonise output folder: apply its neural mapping for this camera '
-                                 'instead of the calibration\'s colour model ("" = off)', read_only=True)
     reliable: bool = setting(False, 'subscribe reliably with a deeper queue (offline replay: lose no frame)',
                              read_only=True)
     color_transport: str = color_transport_setting()

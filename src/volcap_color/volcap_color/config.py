@@ -13,6 +13,16 @@ SELECTABLE_MODELS = ('gain', 'matrix_3x3', 'affine_3x4')     # simplest first
 
 
 @dataclass
+class ColorCorrectionConfig:
+    """How a camera's live colour correction behaves (the color_corrector and camera_pipeline
+    nodes' parameters)."""
+    passthrough: bool = setting(True, 'publish uncorrected images while there is no colour model (false: drop '
+                                'them)')
+    neural_models: str = setting('', 'volcap harmonise output folder: apply its neural mapping for this camera '
+                                 'instead of the calibration\'s colour model ("" = off)', read_only=True)
+
+
+@dataclass
 class CorrespondenceConfig:
     depth_tolerance_m: float = 0.01      # absolute part of the z-buffer agreement test
     depth_tolerance_rel: float = 0.005   # plus this share of the depth (ToF noise grows with it)

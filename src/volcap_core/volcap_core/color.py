@@ -10,8 +10,8 @@ Fitting them is volcap_calib's job; applying them is everyone's.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
-import colour as color_science
 import cv2
 import numpy as np
 
@@ -21,23 +21,34 @@ from .errors import BadInput
 ROOT_DEGREE = {'root_polynomial_2': 2, 'root_polynomial_3': 3}
 
 
-_D65 = color_science.CCS_ILLUMINANTS['CIE 1931 2 Degree Standard Observer']['D65']
-_SRGB_TO_XYZ = color_science.RGB_COLOURSPACES['sRGB'].matrix_RGB_to_XYZ
+@cache
+def _colour():
+    """colour-science, imported on first use: it loads matplotlib (1.4 s of every node's start on
+    2 cores), and a node that applies a compiled model never needs it."""
+    import colour
+    return colour
+
+
+@cache
+def _d65_and_srgb_to_xyz() -> tuple[np.ndarray, np.ndarray]:
+    c = _colour()
+    return c.CCS_ILLUMINANTS['CIE 1931 2 Degree Standard Observer']['D65'], c.RGB_COLOURSPACES['sRGB'].matrix_RGB_to_XYZ
 
 
 # The sRGB transfer functions are called directly, not through colour.cctf_*: same result, a
 # quarter of the cost inside the Lab refinement's least-squares loop.
 def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
-    return color_science.models.eotf_sRGB(np.clip(rgb, 0.0, 1.0))
+    return _colour().models.eotf_sRGB(np.clip(rgb, 0.0, 1.0))
 
 
 def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
-    return color_science.models.eotf_inverse_sRGB(np.clip(rgb, 0.0, 1.0))
+    return _colour().models.eotf_inverse_sRGB(np.clip(rgb, 0.0, 1.0))
 
 
 def linear_to_lab(linear: np.ndarray) -> np.ndarray:
     """CIELAB (D65) of linear sRGB values (clipped to [0, 1], as the encoded image would be)."""
-    return color_science.XYZ_to_Lab(np.clip(linear, 0.0, 1.0) @ _SRGB_TO_XYZ.T, _D65)
+    d65, srgb_to_xyz = _d65_and_srgb_to_xyz()
+    return _colour().XYZ_to_Lab(np.clip(linear, 0.0, 1.0) @ srgb_to_xyz.T, d65)
 
 
 def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
@@ -46,7 +57,7 @@ def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
 
 
 def delta_e2000(rgb_a: np.ndarray, rgb_b: np.ndarray) -> np.ndarray:
-    return color_science.delta_E(srgb_to_lab(rgb_a), srgb_to_lab(rgb_b), method='CIE 2000')
+    return _colour().delta_E(srgb_to_lab(rgb_a), srgb_to_lab(rgb_b), method='CIE 2000')
 
 
 def model_features(method: str, linear: np.ndarray, exponents=None) -> np.ndarray:
@@ -57,7 +68,7 @@ def model_features(method: str, linear: np.ndarray, exponents=None) -> np.ndarra
     if method == 'affine_3x4':
         return np.concatenate([linear, np.ones(linear.shape[:-1] + (1,))], axis=-1)
     if method in ROOT_DEGREE:
-        return color_science.characterisation.polynomial_expansion_Finlayson2015(linear, ROOT_DEGREE[method])
+        return _colour().characterisation.polynomial_expansion_Finlayson2015(linear, ROOT_DEGREE[method])
     raise BadInput(f'unknown colour model {method!r}; choose from {METHODS}')
 
 

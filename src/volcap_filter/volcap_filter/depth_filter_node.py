@@ -66,13 +66,19 @@ def decode(pair: tuple[Image, Image]):
 
 
 class DepthFilter(Node):
-    def __init__(self, **node_options):
+    """The node. ``volcap_pipeline``'s camera_pipeline node extends it (the same inputs, decisions
+    and depth outputs, with the colour correction added) through ``node_name``, ``role`` and
+    ``make_session``."""
+
+    role = 'depth filter'
+
+    def __init__(self, node_name: str = 'depth_filter', **node_options):
         """``node_options`` (namespace, parameter_overrides, context) let a composed process host it."""
-        super().__init__('depth_filter', **node_options)
+        super().__init__(node_name, **node_options)
         self.node_cfg = declare_config(self, DepthFilterNodeConfig, self._on_node_config)
         cfg = declare_config(self, DepthFilterConfig, lambda c: self.session.set_config(c))
         self.camera = self.node_cfg.camera or self.get_namespace().strip('/').split('/')[-1] or 'cam0'
-        self.diagnostics = Diagnostics(self, f'depth filter {self.camera}')
+        self.diagnostics = Diagnostics(self, f'{self.role} {self.camera}')
         background = None
         path = self.node_cfg.background_file
         if path and Path(path).exists():
@@ -81,9 +87,7 @@ class DepthFilter(Node):
                 self.get_logger().info(f'loaded a {background.frames}-frame clean plate from {path}')
             except ValueError as e:      # keep running: a new clean plate is learnt, the file is kept
                 self.diagnostics.report('error', f'{e}; learning a new clean plate (the file stays until then)')
-        self.session = CleanPlateSession(self.camera, cfg, decode,
-                                         (self.node_cfg.output_width, self.node_cfg.output_height),
-                                         self.node_cfg.max_held_frames, background, self.node_cfg.output_scale)
+        self.session = self.make_session(cfg, background)
         self.sync = FrameSetSynchronizer([self.camera], ('color', 'depth'),
                                          tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
                                          timeout_ns=500_000_000, max_pending=4)
@@ -118,7 +122,11 @@ class DepthFilter(Node):
         self.create_service(Trigger, '~/capture_clean_plate', self._on_capture_clean_plate)
         self.create_service(Trigger, '~/save_figures', self._on_save_figures)
         self.create_timer(1.0, self._report)
-        self.get_logger().info(f'depth_filter started for {self.camera}')
+        self.get_logger().info(f'{node_name} started for {self.camera}')
+
+    def make_session(self, cfg: DepthFilterConfig, background: BackgroundModel | None) -> CleanPlateSession:
+        return CleanPlateSession(self.camera, cfg, decode, (self.node_cfg.output_width, self.node_cfg.output_height),
+                                 self.node_cfg.max_held_frames, background, self.node_cfg.output_scale)
 
     def _on_node_config(self, cfg: DepthFilterNodeConfig) -> None:
         self.node_cfg = cfg
@@ -247,25 +255,25 @@ class DepthFilter(Node):
     def _report(self) -> None:
         if self.skipped and self.processed == 0:
             return   # the last warning or error stays the published status
+        level, message, values = self.status()
+        self.diagnostics.report(level, message, **values)
+
+    def status(self) -> tuple[str, str, dict]:
+        """(level, message, values) of the once-a-second diagnostics."""
         session = self.session
         values = dict(processed=self.processed, skipped=self.skipped, dropped=self.skipped,
-                      last_ms=round(self.last_ms, 1), work_s=round(self.work_s, 3), clean_plate_frames=session.background.frames,
+                      last_ms=round(self.last_ms, 1), work_s=round(self.work_s, 3),
+                      clean_plate_frames=session.background.frames, mask=session.cfg.mask_mode,
                       **self.admission.counts())
         if self.empty_streak >= EMPTY_WARN_FRAMES:
             # the count is in the values: the message (and its one log line) stays while it lasts
-            self.diagnostics.report('warn', f'{self.camera}: cleaned frames have no depth left (empty stage, or the '
-                                            'range gate / clean plate removes everything)',
-                                    mask=session.cfg.mask_mode, empty_frames=self.empty_streak, **values)
-            return
+            return 'warn', (f'{self.camera}: cleaned frames have no depth left (empty stage, or the range gate / '
+                            'clean plate removes everything)'), dict(values, empty_frames=self.empty_streak)
         if session.cfg.mask_mode == 'clean_plate' and not session.has_clean_plate and session.learn_remaining == 0:
             service = f'{self.get_fully_qualified_name()}/capture_clean_plate'
-            self.diagnostics.report('warn', f'{self.camera}: no clean plate learnt: depth is published unmasked; '
-                                            f'empty the stage and call {service} (std_srvs/srv/Trigger)',
-                                    mask='none (no clean plate)', **values)
-            return
-        self.diagnostics.report('ok', f'{self.camera}: {self.processed} frames cleaned', mask=session.cfg.mask_mode,
-                                **values)
-
+            return 'warn', (f'{self.camera}: no clean plate learnt: depth is published unmasked; empty the stage and '
+                            f'call {service} (std_srvs/srv/Trigger)'), dict(values, mask='none (no clean plate)')
+        return 'ok', f'{self.camera}: {self.processed} frames cleaned', values
 
 def main(args=None):
     sys.exit(run_node(DepthFilter, args))

@@ -5,12 +5,15 @@ It composes the stages' own session classes, so every entry point decides alike:
 filter's ``CleanPlateSession`` (clean plate, registration, mask, flying pixels; what to learn,
 clean, hold or skip) and, when a colour correction is given, the colour corrector's
 ``CameraCorrection``. The offline replay (``volcap_pipeline.replay``: ``volcap calibrate``,
-``color-fit``, ``harmonise``, the evaluations) drives it frame by frame; on a rig the
-``depth_filter`` and ``color_corrector`` nodes drive the same session classes.
+``color-fit``, ``harmonise``, the evaluations) drives it frame by frame with decoded arrays; on a
+rig the ``camera_pipeline`` node (``camera_pipeline_node``, one process per camera) drives it with
+messages, decoded only for the frames it cleans. The separate ``depth_filter`` and
+``color_corrector`` nodes drive the same two session classes one each.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 
@@ -19,9 +22,9 @@ from volcap_color.correspondence import View, smooth_depth
 from volcap_core.camera import CameraModel, depth_to_millimetres
 from volcap_core.frames import CameraFrame
 from volcap_core.rig import Rig
+from volcap_filter.mask import BackgroundModel
 from volcap_filter.pipeline import CleanResult, DepthCleaner, DepthFilterConfig
 from volcap_filter.session import CleanPlateSession, FramePair, Outcome
-from volcap_fusion.tsdf import CameraView
 
 
 @dataclass
@@ -46,29 +49,40 @@ class CleanedCamera:
         return View(self.name, self.frame.color, smooth_depth(self.result.depth), self.model,
                     T_world_color, _rays=rays)
 
-    def fusion_view(self, T_world_color: np.ndarray) -> CameraView:
-        """The view fusion takes: cleaned depth (mm) and corrected colour, both on the colour grid."""
+    def fusion_view(self, T_world_color: np.ndarray):
+        """The view fusion takes (``volcap_fusion.tsdf.CameraView``): cleaned depth (mm) and
+        corrected colour, both on the colour grid."""
+        from volcap_fusion.tsdf import CameraView  # Open3D: only where a model is fused, not in a camera's node
         return CameraView(self.name, depth_to_millimetres(self.result.depth), self.model, self.color,
                           self.frame.color_model, T_world_color)
 
 
+def _arrays(payload):
+    return payload
+
+
 class CameraPipeline:
-    """The per-camera job of one camera: feed it frames (``add``) with the phase of the session;
-    it answers with the ``Outcome``s of the depth session and, for cleaned frames, a
-    ``CleanedCamera``. ``correction`` (optional) colour-corrects the cleaned frames' colour."""
+    """The per-camera job of one camera: feed it frames (``add``: decoded arrays, offline) or
+    pairs (``add_pair``: whatever ``decode`` turns into rgb uint8 + depth float32 metres, e.g.
+    messages in the node) with the phase of the session; it answers with the ``Outcome``s of the
+    depth session and, for cleaned frames, a ``CleanedCamera`` (``add``) or the corrected colour
+    (``correct``). ``correction`` (optional) colour-corrects the cleaned frames' colour.
+    ``max_held``: pairs kept while camera models or the extrinsic are still to come (offline
+    everything is known before the first frame: 0)."""
 
     def __init__(self, camera: str, cfg: DepthFilterConfig | None = None, rig: Rig | None = None,
                  output_size: tuple[int, int] = (0, 0), output_scale: float = 1.0,
-                 correction: CameraCorrection | None = None):
+                 correction: CameraCorrection | None = None, decode: Callable[[Any], tuple] = _arrays,
+                 max_held: int = 0, background: BackgroundModel | None = None):
         self.camera = camera
-        self.session = CleanPlateSession(camera, cfg or DepthFilterConfig(), lambda arrays: arrays, output_size,
-                                         max_held=0, output_scale=output_scale)
+        self.session = CleanPlateSession(camera, cfg or DepthFilterConfig(), decode, output_size,
+                                         max_held=max_held, background=background, output_scale=output_scale)
         if rig is not None:
             self.session.set_rig(rig)
         self.correction = correction
 
     def add(self, frame: CameraFrame, stamp_ns: int, phase: str | None) -> tuple[list[Outcome], CleanedCamera | None]:
-        """One frame of this camera in ``phase``: (every outcome, the cleaned camera or None)."""
+        """One decoded frame of this camera in ``phase``: (every outcome, the cleaned camera or None)."""
         s = self.session
         s.set_model('color', frame.color_model)
         s.set_model('depth', frame.depth_model)
@@ -79,10 +93,15 @@ class CameraPipeline:
         cleaned = None
         for o in outcomes:
             if o.kind == 'cleaned':
-                color = frame.color
-                if self.correction is not None:
-                    corrected = self.correction.apply(frame.color)
-                    # the corrector reuses its output buffer for the next frame: keep this one's
-                    color = frame.color if corrected is None else corrected.copy()
-                cleaned = CleanedCamera(self.camera, frame, o.result, o.cleaner, color)
+                color = self.correct(frame.color)
+                cleaned = CleanedCamera(self.camera, frame, o.result, o.cleaner, frame.color if color is None else color)
         return outcomes, cleaned
+
+    def correct(self, color: np.ndarray, keep: bool = True) -> np.ndarray | None:
+        """``color`` corrected, ``color`` itself when no correction applies, None when the
+        correction drops the frame. The corrector reuses its output buffer for the next frame:
+        ``keep`` copies it (not needed when the result is serialised at once)."""
+        if self.correction is None:
+            return color
+        corrected = self.correction.apply(color)
+        return corrected.copy() if keep and corrected is not None and corrected is not color else corrected
