@@ -1,6 +1,6 @@
-"""`volcap run`: a synthetic bag through bag_player, depth_filter and color_corrector per
-camera and tsdf_fusion, each in its own process; the fused output reaches the runner's renderer
-probe (another process), one mesh per capture frame set, and `volcap eval fusion` scores it."""
+"""`volcap run`: a synthetic bag through bag_player, a camera_pipeline per camera and
+tsdf_fusion (here composed in one process; in processes: test_demo); the fused output reaches the
+runner's renderer probe, one mesh per capture frame set, and `volcap eval fusion` scores it."""
 import json
 
 import pytest
@@ -45,7 +45,7 @@ def corrupt_a_clean_plate_chunk(bag, out):
 
 
 @pytest.mark.timeout(400)
-@pytest.mark.parametrize('mode', ['composed'])     # each node its own process: the demo's test below
+@pytest.mark.parametrize('mode', ['composed'])     # each node its own process: test_demo
 def test_volcap_run_fuses_every_capture_frame_set(capture_bag, tmp_path, mode, gt_calibration):
     """Composed, from a copy of the bag with a corrupt chunk in its clean plate, which is skipped
     and reported, not a reason to fuse nothing."""
@@ -80,26 +80,3 @@ def test_volcap_run_fuses_every_capture_frame_set(capture_bag, tmp_path, mode, g
     # 10 mm voxels, ground-truth poses, full-size clean depth: measured 1.56 mm and 83.0 % of the
     # observable surface (60.0 % of the whole mesh), the same in both modes
     assert scores['accuracy_mm'] < 2.0 and scores['completeness'] > 0.78
-
-
-@pytest.mark.timeout(900)
-def test_demo_calibrates_runs_and_scores_without_an_error_line(tmp_path, capfd, shared_data):
-    """`volcap demo` end to end on a short session: it renders the studio, calibrates the rig from
-    its board views, runs the graph on the bag with that calibration (each node its own process)
-    and scores the fused model against the truth; a healthy run prints no ERROR line, from any
-    process."""
-    out = tmp_path / 'demo'
-    assert main(['demo', '--out', str(out), '--frames', '2', '--colour-frames', '2', '--harmonise-epochs', '1',
-                 '--mapper-epochs', '1', '--scored-frames', '2', '--run-rate', '0.1']) == 0
-    printed = capfd.readouterr()
-    text = printed.out + printed.err
-    errors = [line for line in text.splitlines() if 'ERROR' in line or 'Traceback' in line]
-    assert not errors, errors[:5]
-    assert '2 of 2 capture frame sets fused' in text
-    run = json.loads((out / 'run' / 'metrics.json').read_text())
-    assert run['frames_written'] == 2 and all(c == 0 for c in run['node_exit_codes'].values())
-    fusion = json.loads((out / 'fusion.json').read_text())
-    # calibrated from the board (16 poses), not the truth
-    assert fusion['frames'] == 2 and fusion['accuracy_mm'] < 3.0 and fusion['completeness'] > 0.85, fusion
-    colour = json.loads((out / 'colour.json').read_text())
-    assert {'original', 'volcap_chart', 'neural', 'neural_live'} <= set(colour['methods'])

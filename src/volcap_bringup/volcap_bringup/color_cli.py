@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from volcap_color.config import ColorFitConfig
+from volcap_color.config import CaptureSetsConfig, ColorFitConfig
 from volcap_core.errors import BadInput
 from volcap_core.settings import add_arguments, config_from_args
 
@@ -22,7 +22,7 @@ def cmd_color_fit(args) -> int:
     from volcap_pipeline.replay import capture_views
     cfg = config_from_args(ColorFitConfig, args, correspondence=_correspondence(args))
     calibration = Calibration.load(args.calibration)
-    sets = capture_views(args.bag, calibration, args.frames, not args.quiet)
+    sets = capture_views(args.bag, calibration, config_from_args(CaptureSetsConfig, args).frames, not args.quiet)
     anchor = None
     if cfg.reference == 'chart':
         anchor, why = chart_samples(args.bag, load_board(args.board), cameras_in(sets, calibration), not args.quiet)
@@ -48,7 +48,7 @@ def cmd_harmonise(args) -> int:
     cfg = harmonise_config(args)
     calibration = Calibration.load(args.calibration)
     t0 = time.perf_counter()
-    sets = capture_views(args.bag, calibration, args.frames, not args.quiet)
+    sets = capture_views(args.bag, calibration, config_from_args(CaptureSetsConfig, args).frames, not args.quiet)
     report = neural.run(sets, cameras_in(sets, calibration), cfg, args.out, args.train_sets, args.resume,
                         not args.quiet, {'bag': str(args.bag), 'calibration': str(args.calibration)},
                         time.perf_counter() - t0)
@@ -75,7 +75,7 @@ def common_arguments(p) -> None:
     capture frame sets (``color-fit``, ``harmonise``, ``eval color``)."""
     p.add_argument('bag')
     p.add_argument('--calibration', required=True, help='calibration.yaml of the rig')
-    p.add_argument('--frames', type=int, default=4, help='capture frame sets to use')
+    add_arguments(p, CaptureSetsConfig)
     p.add_argument('--keep-edges', action='store_true', help='keep correspondences on texture edges')
     p.add_argument('--board', help='board YAML (default: the volcap board)')
     p.add_argument('--quiet', action='store_true')

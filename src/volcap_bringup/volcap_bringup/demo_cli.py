@@ -21,6 +21,8 @@ class DemoConfig:
     board_poses: int = setting(16, 'calibration board poses (16: enough shared views to chain the four stands)',
                                1, 1000)
     seed: int = setting(0, 'seed of the synthetic studio', 0, 2**31 - 1)
+    colour: bool = setting(True, 'run the colour steps: the short neural harmonisation and every colour method '
+                           'scored (a third of the demo\'s time)')
     colour_frames: int = setting(4, 'capture frame sets the colour steps use', 2, 1000)
     # a third of the default training, so the demo stays a few minutes (docs/color.md: full-length figures)
     harmonise_epochs: int = setting(40, 'epochs of colour field E in the short neural run', 1, 10_000)
@@ -37,17 +39,9 @@ class DemoConfig:
 def cmd_demo(args) -> int:
     from volcap_calib.run import CalibrateConfig
     from volcap_calib.run import run as calibrate
-    from volcap_color import neural
-    from volcap_color.config import HarmoniseConfig
-    from volcap_color.correspondence import cameras_in
     from volcap_core.bag_reader import BagReader
-    from volcap_core.calibration import Calibration
     from volcap_core.files import write_json
-    from volcap_eval.color import ColorEvalConfig
-    from volcap_eval.color import format_report as format_color
-    from volcap_eval.color import run as evaluate_color
     from volcap_eval.fusion import evaluate_fusion
-    from volcap_pipeline.replay import capture_views
     from volcap_studio.session import GroundTruth, synthesize
     from volcap_studio.studio import SynthConfig
 
@@ -92,22 +86,10 @@ def cmd_demo(args) -> int:
     print(f'[3/7] calibrating the rig from the board views: volcap calibrate -> {calibration}')
     print('\n'.join(calibrate(CalibrateConfig(bag, calibration)).lines()))
 
-    models = out / 'neural'
-    print(f'[4/7] neural colour harmonisation (paper 001), a short run of volcap harmonise -> {models}')
-    t0 = time.perf_counter()
-    rig_calibration = Calibration.load(calibration)
-    sets = capture_views(bag, rig_calibration, demo.colour_frames)
-    report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**demo.harmonise()),
-                        models, sources={'bag': str(bag), 'calibration': str(calibration)},
-                        views_seconds=time.perf_counter() - t0)
-    print('\n'.join(report.lines()))
-
-    print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
-          f'{out / "figures"}')
-    color = evaluate_color(bag, calibration, ColorEvalConfig(frames=demo.colour_frames), neural=models,
-                           figures=out / "figures")
-    write_json(out / 'colour.json', color)
-    print(format_color(color))
+    if demo.colour:
+        _colour_steps(demo, bag, calibration, out)
+    else:
+        print('[4/7] [5/7] colour steps left out (--no-colour)')
 
     run = out / 'run'
     if run.exists():
@@ -129,6 +111,37 @@ def cmd_demo(args) -> int:
     print(f'meshes: {run / "frames"} (PLY + GLB per frame set)  renders: {run / "renders"} '
           f'(raw vs cleaned: {run / "renders" / "raw_vs_clean.png"})  metrics: {run / "metrics.json"}')
     return 0
+
+
+def _colour_steps(demo: DemoConfig, bag: Path, calibration: Path, out: Path) -> None:
+    """Steps 4 and 5: the short neural harmonisation and every colour method on the same
+    correspondences, scored against the truth."""
+    from volcap_color import neural
+    from volcap_color.config import HarmoniseConfig
+    from volcap_color.correspondence import cameras_in
+    from volcap_core.calibration import Calibration
+    from volcap_core.files import write_json
+    from volcap_eval.color import ColorEvalConfig
+    from volcap_eval.color import format_report as format_color
+    from volcap_eval.color import run as evaluate_color
+    from volcap_pipeline.replay import capture_views
+
+    models = out / 'neural'
+    print(f'[4/7] neural colour harmonisation (paper 001), a short run of volcap harmonise -> {models}')
+    t0 = time.perf_counter()
+    rig_calibration = Calibration.load(calibration)
+    sets = capture_views(bag, rig_calibration, demo.colour_frames)
+    report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**demo.harmonise()),
+                        models, sources={'bag': str(bag), 'calibration': str(calibration)},
+                        views_seconds=time.perf_counter() - t0)
+    print('\n'.join(report.lines()))
+
+    print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '
+          f'{out / "figures"}')
+    color = evaluate_color(bag, calibration, ColorEvalConfig(frames=demo.colour_frames), neural=models,
+                           figures=out / "figures")
+    write_json(out / 'colour.json', color)
+    print(format_color(color))
 
 
 def _same_config(bag: Path, cfg) -> bool:

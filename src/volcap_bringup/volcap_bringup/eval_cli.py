@@ -75,7 +75,7 @@ def _print_report(report: dict, args) -> int:
 
 def cmd_eval_color(args) -> int:
     from volcap_eval.color import run
-    cfg = config_from_args(ColorEvalConfig, args, frames=args.frames, correspondence=_correspondence(args))
+    cfg = config_from_args(ColorEvalConfig, args, correspondence=_correspondence(args))
     report = run(args.bag, args.calibration, cfg,
                  board_file=args.board, chart=not args.no_chart, neural=args.neural, figures=args.figures,
                  progress=not args.quiet)

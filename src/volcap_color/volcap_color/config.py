@@ -13,6 +13,13 @@ SELECTABLE_MODELS = ('gain', 'matrix_3x3', 'affine_3x4')     # simplest first
 
 
 @dataclass
+class CaptureSetsConfig:
+    """How many of a bag's capture frame sets the colour commands read (`color-fit`, `harmonise`,
+    `eval color`)."""
+    frames: int = setting(4, 'capture frame sets to use (eval color: alternately fit and scored)', 1, 10_000)
+
+
+@dataclass
 class ColorCorrectionConfig:
     """How a camera's live colour correction behaves (the color_corrector and camera_pipeline
     nodes' parameters)."""

@@ -3,13 +3,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from volcap_color.config import CHART_FREE_MODELS, CorrespondenceConfig
+from volcap_color.config import CHART_FREE_MODELS, CaptureSetsConfig, CorrespondenceConfig
 from volcap_core.settings import setting
 
 
 @dataclass
-class ColorEvalConfig:
-    frames: int = setting(4, 'capture frame sets used (alternately fit and scored)', 1, 10_000)
+class ColorEvalConfig(CaptureSetsConfig):
+    # frames: CaptureSetsConfig's, shared with color-fit and harmonise
     eval_min_fraction: float = 0.01
     fit_min_fraction: float = 0.001
     max_scored_per_pair: int = 50_000
