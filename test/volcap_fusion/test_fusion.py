@@ -303,3 +303,38 @@ def test_observable_surface_excludes_what_the_sensor_drops():
     # what the dark half hides lies on the first camera's side, away from the second
     eye0, eye1 = views[0].T_world_camera[:3, 3], views[1].T_world_camera[:3, 3]
     assert np.all(np.linalg.norm(points[lost] - eye0, axis=1) < np.linalg.norm(points[lost] - eye1, axis=1))
+
+
+def test_the_rig_pipeline_fuses_encodes_and_writes_a_frame_set_and_names_what_it_left_out(tmp_path):
+    """RigFusion (what tsdf_fusion drives with its messages): parts -> views placed by the
+    calibration -> model -> GLB -> the sequence; a camera without a part or with a bad one is
+    left out by name, too few views skip the set."""
+    from volcap_core.calibration import Calibration, CameraCalibration
+    from volcap_fusion.rig import RigFusion
+    views = {v.name: v for v in sphere_views(4)}
+    # the parts stand in for messages: the view's depth, or a string that cannot become a view
+    calibration = Calibration('cam0', 'world', {c: CameraCalibration(v.T_world_camera, f'{c}_color_optical_frame')
+                                                for c, v in views.items()})
+
+    def to_view(cam, part, T_frame_color):
+        if isinstance(part, str):
+            raise ValueError(part)
+        v = views[cam]
+        return CameraView(cam, part, v.depth_model, v.color, v.color_model, T_frame_color)
+
+    cfg = FusionConfig(voxel_size=0.01)
+    writer = SequenceWriter(tmp_path / 'seq', ('ply', 'glb'), EncodeConfig().for_voxel(cfg.voxel_size))
+    rig = RigFusion(TsdfFusion(cfg), EncodeConfig().for_voxel(cfg.voxel_size), min_cameras=2, writer=writer)
+    parts = {'cam0': views['cam0'].depth_mm, 'cam1': views['cam1'].depth_mm, 'cam2': 'unusable encoding'}
+    fused = rig.fuse(1_000, calibration, list(views), parts, to_view)
+    assert fused.plan.missing == ['cam2', 'cam3'] and 'unusable encoding' in fused.plan.problems['cam2']
+    assert not fused.plan.skipped and len(fused.model.triangles) > 1000 and fused.frame == 'world'
+    assert fused.encoded is not None                       # the sequence keeps GLBs
+    reference = TsdfFusion(cfg).fuse([views['cam0'], views['cam1']])
+    # the views, placed as calibrated (the voxel hash map orders vertices as it likes)
+    assert np.array_equal(np.unique(fused.model.vertices, axis=0), np.unique(reference.vertices, axis=0))
+    rig.write(fused)
+    writer.close()
+    assert writer.written == 1 and len(list((tmp_path / 'seq').glob('*.glb'))) == 1
+    skipped = rig.fuse(2_000, calibration, list(views), {'cam0': views['cam0'].depth_mm}, to_view)
+    assert skipped.model is None and '1 of 4 cameras' in skipped.plan.skipped

@@ -45,13 +45,13 @@ from volcap_core.conversions import camera_info_to_model, color_to_rgb, depth_to
 from volcap_core.errors import BadInput
 from volcap_core.gltf_marker import glb_marker
 from volcap_core.health import SilenceWatch
-from volcap_core.poses import invert
 from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node
 from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
-from .frame_sets import FusionNodeConfig, PhaseTimeline, frame_set_views, fused_cameras, fused_phase
-from .glb import EncodeConfig, encode, simplify
+from .frame_sets import FusionNodeConfig, PhaseTimeline, fused_cameras, fused_phase
+from .glb import EncodeConfig, simplify
+from .rig import FusedSet, RigFusion
 from .sequence import SequenceWriter, frame_rate
 from .tsdf import CameraView, FusionConfig, TsdfFusion, open3d_device
 
@@ -65,13 +65,15 @@ class TsdfFusionNode(Node):
         super().__init__('tsdf_fusion', **node_options)
         self.node_cfg = declare_config(self, FusionNodeConfig, self._on_node_config)
         cfg = declare_config(self, FusionConfig)
-        self.fusion = TsdfFusion(cfg)   # validates: bad values stop the node with the reason
-        self.encoding = declare_config(self, EncodeConfig).for_voxel(cfg.voxel_size)
-        self.encoding.validate()
+        fusion = TsdfFusion(cfg)   # validates: bad values stop the node with the reason
+        encoding = declare_config(self, EncodeConfig).for_voxel(cfg.voxel_size)
+        encoding.validate()
         self.wanted = [c for c in self.node_cfg.cameras if c]
         output_dir = self.node_cfg.output_dir
         formats = tuple(f for f in self.node_cfg.output_formats if f)
-        self.writer = SequenceWriter(output_dir, formats, self.encoding) if output_dir else None
+        # the rig pipeline (views -> model -> GLB -> sequence), driven with the received messages
+        self.rig = RigFusion(fusion, encoding, self.node_cfg.min_cameras,
+                             SequenceWriter(output_dir, formats, encoding) if output_dir else None)
         self.writer_failure = ''          # why the sequence stopped being written (a full disk)
         self.silence = SilenceWatch(self.node_cfg.silent_periods)
         self.short_of: list[str] = []            # cameras missing from the last fused frame set
@@ -183,14 +185,12 @@ class TsdfFusionNode(Node):
             self.work_s += time.process_time() - cpu0
 
     def _fuse_set(self, fs: FrameSet, calibration: Calibration, cameras: list[str], t0: float) -> None:
-        frame, T_frame_world = calibration.output_frame()
-        studio = calibration.studio
-        on_floor = studio is not None and studio.details.get('source') == 'floor'
+        self.rig.min_cameras = self.node_cfg.min_cameras          # a parameter that may change while running
         pairs = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras}
         parts = {c: p for c, p in pairs.items() if None not in p}
-        plan = frame_set_views(fs.stamp_ns, cameras, parts,
-                               lambda c, p: self._view(c, *p, T_frame_world @ calibration.T_world_color(c)),
-                               self.node_cfg.min_cameras)
+        fused = self.rig.fuse(fs.stamp_ns, calibration, cameras, parts, lambda c, p, T: self._view(c, *p, T),
+                              glb=bool(self.pub_glb.get_subscription_count()))
+        plan, model, encoded, frame = fused.plan, fused.model, fused.encoded, fused.frame
         if plan.problems:
             self.diagnostics.report('warn', 'cameras left out of frame set: '
                                     + '; '.join(f'{c}: {e}' for c, e in plan.problems.items()))
@@ -200,8 +200,7 @@ class TsdfFusionNode(Node):
             return
         if plan.missing:
             self.diagnostics.report('warn', f'frame set {fs.stamp_ns} fused without {", ".join(plan.missing)}')
-        model = self.fusion.fuse(plan.views, on_floor=on_floor)
-        if len(model.vertices) == 0:
+        if fused.empty:
             self.stats['empty'] += 1
             self.last = {'cameras': len(plan.views), 'vertices': 0}
             return
@@ -212,9 +211,7 @@ class TsdfFusionNode(Node):
             self.pub_mesh.publish(mesh_to_marker_cdr(marker.vertices, marker.colors, marker.triangles, fs.stamp_ns,
                                                      frame))
         stream = {}
-        encoded = None
-        if self.pub_glb.get_subscription_count() or (self.writer is not None and 'glb' in self.writer.formats):
-            encoded = encode(model, self.encoding, fs.stamp_ns, self.writer.written if self.writer else None, frame)
+        if encoded is not None:
             self.glb_stamps.append(fs.stamp_ns)
             rate = frame_rate(list(self.glb_stamps)) or 0.0
             stream = {'glb_bytes': len(encoded.data), 'glb_triangles': encoded.triangles,
@@ -225,8 +222,8 @@ class TsdfFusionNode(Node):
         latency_ms = (time.time_ns() - fs.stamp_ns) / 1e6
         if 0 <= latency_ms < 60_000:      # stamps on the rig's clock (live), not a replayed bag's
             self.latency_ms.append((time.monotonic(), latency_ms))
-        if self.writer is not None:
-            self._write(model, fs.stamp_ns, plan.missing, frame, invert(T_frame_world), encoded)
+        if self.rig.writer is not None:
+            self._write(fused)
         self.short_of = plan.missing
         self.stats['fused'] += 1
         self.stats['fused_complete'] += not plan.missing
@@ -234,13 +231,13 @@ class TsdfFusionNode(Node):
                      'total_ms': round((time.perf_counter() - t0) * 1000, 1), 'cameras': len(plan.views),
                      'vertices': len(model.vertices), 'triangles': len(model.triangles), **stream}
 
-    def _write(self, model, stamp_ns: int, missing: list[str], frame: str, T_world_frame, encoded) -> None:
+    def _write(self, fused: FusedSet) -> None:
         """One frame into the sequence. A failed write (a full disk) stops the recording, whole up
         to the last frame, while fusion and the live stream go on."""
         try:
-            self.writer.write(model, stamp_ns, missing, frame, T_world_frame, encoded)
+            self.rig.write(fused)
         except OSError as e:
-            writer, self.writer = self.writer, None
+            writer, self.rig.writer = self.rig.writer, None
             self.writer_failure = (f'recording stopped: {e}; the sequence holds {writer.written} whole frames '
                                    f'in {writer.folder}')
             try:
@@ -304,8 +301,8 @@ class TsdfFusionNode(Node):
 
     def destroy_node(self):
         self.worker.stop()
-        if self.writer is not None:
-            self.writer.close()
+        if self.rig.writer is not None:
+            self.rig.writer.close()
         return super().destroy_node()
 
 
