@@ -2,7 +2,7 @@
 real time with fresh stamps, a renderer stand-in receiving every mesh.
 
     .venv/bin/python bench/live.py BAG CALIBRATION [--seconds 60] [--voxels 0.01,0.006] [--composed]
-        [--split-stages]
+        [--split-stages] [--every N]
 
 Per voxel size (and with ``--composed``, also every node in one process; with ``--split-stages``,
 also each camera's depth_filter and color_corrector as two processes instead of one
@@ -63,11 +63,11 @@ def memory_sampler(stop: threading.Event, samples: list, per_process: dict, peri
 
 
 def one_run(bag: str, calibration: str, voxel: float, seconds: float, warmup: float, composed: bool,
-            source_nice: int = 0, split_stages: bool = False) -> dict:
+            source_nice: int = 0, split_stages: bool = False, every: int = 0) -> dict:
     from volcap_bringup.live import LiveConfig, latency_ms, run_live, summary_figures
     from volcap_bringup.live_controller import LiveController
     cfg = LiveConfig(calibration, bag=bag, voxel_size=voxel, seconds=seconds, warmup_s=warmup, composed=composed,
-                     probe=True, source_nice=source_nice, split_stages=split_stages)
+                     probe=True, source_nice=source_nice, split_stages=split_stages, every=every)
     stop, memory, per_process = threading.Event(), [], {}
     sampler = threading.Thread(target=memory_sampler, args=(stop, memory, per_process), daemon=True)
     sampler.start()
@@ -170,6 +170,9 @@ def main() -> int:
     ap.add_argument('--warmup', type=float, default=15.0)
     ap.add_argument('--voxels', default='0.01,0.006')
     ap.add_argument('--composed', action='store_true', help='also run every node in one process (10 mm)')
+    ap.add_argument('--every', type=int, default=0,
+                    help='admit one frame set in N, fixed (0: the controller chooses from the load); a fixed '
+                         'admission compares graphs on the same work')
     ap.add_argument('--split-stages', action='store_true',
                     help='also run each camera as a depth_filter and a color_corrector process (the first voxel size)')
     ap.add_argument('--source-nice', type=int, default=0,
@@ -186,7 +189,8 @@ def main() -> int:
     for voxel, composed, split in plan:
         print(f'{voxel * 1000:.0f} mm voxels, {"composed" if composed else "processes"}'
               f'{", split stages" if split else ""}: {args.seconds:.0f} s after the graph is up', flush=True)
-        r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed, args.source_nice, split)
+        r = one_run(args.bag, args.calibration, voxel, args.seconds, args.warmup, composed, args.source_nice, split,
+                    args.every)
         r['memory_mb_per_minute'] = growth_per_minute(r['memory_mb'])
         r['process_mb_per_minute'] = {name: growth_per_minute(series)
                                       for name, series in r['memory_mb_per_process'].items()}
