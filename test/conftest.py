@@ -55,22 +55,35 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def _rendered_once(tmp_path_factory, name, **cfg) -> Path:
+    """A synthetic session rendered once per test run: the parallel workers (pytest-xdist) share
+    the run's base folder, and the first to ask renders it while the others wait. Tests only
+    read it (one that damages a bag damages a copy)."""
+    from filelock import FileLock
+
+    from volcap_studio.session import synthesize
+    from volcap_studio.studio import SynthConfig
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get('PYTEST_XDIST_WORKER'):
+        root = root.parent            # each worker's base folder sits in the run's
+    folder = root / f'shared_{name}'
+    with FileLock(str(root / f'shared_{name}.lock')):
+        if not (folder / 'complete').exists():
+            folder.mkdir(exist_ok=True)
+            synthesize(folder / 'bag', SynthConfig(**cfg), progress=False, overwrite=True)
+            (folder / 'complete').touch()
+    return folder / 'bag'
+
+
 @pytest.fixture(scope='session')
 def studio_bag(tmp_path_factory, shared_data):
     """One small 8-camera studio session (clean plate, 2 board poses, 2 capture frames)."""
-    from volcap_studio.session import synthesize
-    from volcap_studio.studio import SynthConfig
-    out = tmp_path_factory.mktemp('studio') / 'bag'
-    synthesize(out, SynthConfig(cameras=8, frames=2, board_poses=2, background_frames=1, seed=7), progress=False)
-    return out
+    return _rendered_once(tmp_path_factory, 'studio', cameras=8, frames=2, board_poses=2, background_frames=1,
+                          seed=7)
 
 
 def _small_session(tmp_path_factory, name, **cfg):
-    from volcap_studio.session import synthesize
-    from volcap_studio.studio import SynthConfig
-    out = tmp_path_factory.mktemp(name) / 'bag'
-    synthesize(out, SynthConfig(frames=0, background_frames=0, seed=11, **cfg), progress=False)
-    return out
+    return _rendered_once(tmp_path_factory, name, frames=0, background_frames=0, seed=11, **cfg)
 
 
 @pytest.fixture(scope='session')
