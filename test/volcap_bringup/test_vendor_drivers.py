@@ -104,12 +104,15 @@ def test_camera_pipeline_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag,
     # Native depth is registered by volcap (dense); a driver's registration leaves a lattice of
     # holes (28 % of the pixels valid) and must survive the flying-pixel filter.
     assert (depth > 0).mean() > (0.5 if not registered else 0.25)
-    corrected = probe.got['/cam0/' + topics.COLOR_CORRECTED][-1][1]
+    corrected_all = [m for _, m in probe.got['/cam0/' + topics.COLOR_CORRECTED]]
+    corrected = corrected_all[-1]
     assert corrected.encoding == 'rgb8' and (corrected.height, corrected.width) == (720, 1280)
-    # each corrected image comes with its camera_info (sent just before it)
+    # each corrected image comes with its camera_info (sent just before it, on another topic: a
+    # keep-last 2 writer on a loaded machine may replace one before it is delivered)
     infos = {(m.header.stamp.sec, m.header.stamp.nanosec): m for _, m in probe.got['/cam0/' + topics.COLOR_CORRECTED_INFO]}
-    info = infos[(corrected.header.stamp.sec, corrected.header.stamp.nanosec)]
-    assert abs(info.k[0] - cam.color.fx) < 1e-6
+    paired = [infos[k] for k in ((m.header.stamp.sec, m.header.stamp.nanosec) for m in corrected_all) if k in infos]
+    assert paired and len(paired) >= len(corrected_all) / 2, (len(paired), len(corrected_all))
+    assert all(abs(info.k[0] - cam.color.fx) < 1e-6 for info in paired)
     mesh = probe.got['/' + topics.MESH][-1][1]
     assert len(mesh.points) > 3000 and mesh.header.frame_id == color_frame     # one camera, default threshold
 
