@@ -61,7 +61,7 @@ def expected_subscribers(cameras: list[str], layout: dict[str, dict[str, str]], 
     ``probe`` adds the renderer probe on the first colour, ``controller`` the live controller on
     the first and last cameras' camera_info."""
     expected = {t: 0 for t in played}
-    on_color = 2 if split_stages else 1
+    on_color = len(camera_nodes(split_stages))      # each per-camera node reads the colour
     for c in cameras:
         expected[layout[c]['color']] = on_color + (probe and c == cameras[0])
         watched = controller and c in (cameras[0], cameras[-1])     # the live controller's clock

@@ -275,6 +275,7 @@ class DepthFilter(Node):
                             f'call {service} (std_srvs/srv/Trigger)'), dict(values, mask='none (no clean plate)')
         return 'ok', f'{self.camera}: {self.processed} frames cleaned', values
 
+
 def main(args=None):
     sys.exit(run_node(DepthFilter, args))
 

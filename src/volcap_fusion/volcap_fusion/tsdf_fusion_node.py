@@ -107,6 +107,7 @@ class TsdfFusionNode(Node):
 
     def _on_node_config(self, cfg: FusionNodeConfig) -> None:
         self.node_cfg = cfg
+        self.rig.min_cameras = cfg.min_cameras      # may change while running
 
     # inputs -------------------------------------------------------------------------------
     def _on_calibration(self, msg: String) -> None:
@@ -185,7 +186,6 @@ class TsdfFusionNode(Node):
             self.work_s += time.process_time() - cpu0
 
     def _fuse_set(self, fs: FrameSet, calibration: Calibration, cameras: list[str], t0: float) -> None:
-        self.rig.min_cameras = self.node_cfg.min_cameras          # a parameter that may change while running
         pairs = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras}
         parts = {c: p for c, p in pairs.items() if None not in p}
         fused = self.rig.fuse(fs.stamp_ns, calibration, cameras, parts, lambda c, p, T: self._view(c, *p, T),

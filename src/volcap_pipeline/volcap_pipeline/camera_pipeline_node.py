@@ -28,6 +28,7 @@ from volcap_color.corrector import CameraCorrection
 from volcap_core import qos, topics
 from volcap_core.cdr import image_to_cdr
 from volcap_core.conversions import camera_model_to_info
+from volcap_core.diagnostics import LEVELS
 from volcap_core.ros import declare_config, run_node
 from volcap_filter.depth_filter_node import DepthFilter, decode
 from volcap_filter.mask import BackgroundModel
@@ -35,8 +36,6 @@ from volcap_filter.pipeline import DepthFilterConfig
 from volcap_filter.session import CleanPlateSession, Outcome
 
 from .camera import CameraPipeline
-
-_LEVELS = ('ok', 'warn', 'error')
 
 
 class CameraPipelineNode(DepthFilter):
@@ -92,7 +91,7 @@ class CameraPipelineNode(DepthFilter):
     def status(self) -> tuple[str, str, dict]:
         level, message, values = super().status()
         color_level, color_message, color_values = self.pipeline.correction.status()
-        if _LEVELS.index(color_level) > _LEVELS.index(level):
+        if LEVELS[color_level] > LEVELS[level]:
             level = color_level
         if color_level != 'ok' or level == 'ok':
             message = f'{message}; {color_message.removeprefix(self.camera + ": ")}'
