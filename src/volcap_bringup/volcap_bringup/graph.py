@@ -97,7 +97,8 @@ def rig_graph(cameras: list[str], source: tuple[str, str, dict] | None, filters:
     else:
         nodes += [('volcap_pipeline', 'camera_pipeline', c, {**filters.get(c, {}), **corrector},
                    dict(camera_maps.get(c, {}))) for c in cameras]
-    nodes.append(('volcap_fusion', 'tsdf_fusion', '', dict(fusion), {}))
+    # the camera pipelines send the compact wire; the separate stages only the full-size images
+    nodes.append(('volcap_fusion', 'tsdf_fusion', '', {**fusion, 'input': 'full' if split_stages else 'wire'}, {}))
     return nodes
 
 

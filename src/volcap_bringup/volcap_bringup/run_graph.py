@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from volcap_core import topics
+from volcap_core import topics, wire
 from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.errors import BadInput
@@ -154,15 +154,17 @@ def graph_subscriptions(cameras: list[str], layout: dict, split_stages: bool = F
                         ) -> dict[str, set[tuple[str, str]]]:
     """What a rig graph is up with: every camera's raw colour subscribed by its per-camera nodes
     (``graph.camera_nodes``), its raw depth by the one that cleans depth, and its cleaned depth
-    and corrected colour by the fusion, as (namespace, node) per fully qualified topic."""
+    and corrected colour by the fusion (the camera pipelines' wire; with ``split_stages`` the
+    full-size images), as (namespace, node) per fully qualified topic."""
     per_camera = camera_nodes(split_stages)
+    fused = ((topics.DEPTH_CLEAN, topics.COLOR_CORRECTED) if split_stages
+             else (wire.WIRE_DEPTH, wire.WIRE_COLOR))
 
     def wanted(cam):
         ns = '/' + cam
         return {layout[cam]['color']: {(ns, n) for n in per_camera},
                 layout[cam]['depth']: {(ns, per_camera[0])},
-                topics.camera_topic(cam, topics.DEPTH_CLEAN): {('/', 'tsdf_fusion')},
-                topics.camera_topic(cam, topics.COLOR_CORRECTED): {('/', 'tsdf_fusion')}}
+                **{topics.camera_topic(cam, t): {('/', 'tsdf_fusion')} for t in fused}}
     return {'/' + t: nodes for cam in cameras for t, nodes in wanted(cam).items()}
 
 

@@ -237,9 +237,13 @@ class ImageCorrector:
             correct = model.apply if isinstance(model, ColorModel) else model
             self._lut = lut_from_function(correct, lut_size)
 
-    def __call__(self, image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, image: np.ndarray, out: np.ndarray | None = None,
+                 window: tuple[int, int, int, int, int] | None = None) -> np.ndarray:
         """The corrected image, written into ``out`` (same shape, uint8, contiguous) if given:
-        a caller at frame rate reuses one buffer instead of paging in a fresh 2.7 MB each time."""
+        a caller at frame rate reuses one buffer instead of paging in a fresh 2.7 MB each time.
+        ``window`` = (x, y, full width, full height, step): ``image`` is a crop of a larger image
+        from (x, y), every ``step``-th pixel (the wire's region); the one model that depends on
+        the position (the region LUT) then corrects it as it would the whole image."""
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
             raise BadInput(f'expected an (H, W, 3) uint8 RGB image, got {image.dtype} {image.shape}')
         if out is None or out.shape != image.shape or out.dtype != np.uint8 or not out.flags.c_contiguous:
@@ -251,10 +255,15 @@ class ImageCorrector:
             _linear_kernel(image.reshape(-1), self._packed, self._encode, out.reshape(-1))
         elif self.kind == 'region_lut':
             h, w = image.shape[:2]
-            if (h, w) not in self._nodes:
+            x, y, full_w, full_h, step = window or (0, 0, w, h, 1)
+            if (full_w, full_h) not in self._nodes:
                 nx, ny = self.model.grid
-                self._nodes[(h, w)] = (*self.model.nodes(w, nx), *self.model.nodes(h, ny))
-            _region_lut_kernel(image, self._packed, *self._nodes[(h, w)], out)
+                self._nodes[(full_w, full_h)] = (*self.model.nodes(full_w, nx), *self.model.nodes(full_h, ny))
+            col_node, col_weight, row_node, row_weight = self._nodes[(full_w, full_h)]
+            cols, rows = slice(x, x + w * step, step), slice(y, y + h * step, step)
+            _region_lut_kernel(image, self._packed, np.ascontiguousarray(col_node[cols]),
+                               np.ascontiguousarray(col_weight[cols]), np.ascontiguousarray(row_node[rows]),
+                               np.ascontiguousarray(row_weight[rows]), out)
         else:
             _lut_kernel(image, self._lut, out)
         return out

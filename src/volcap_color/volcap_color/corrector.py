@@ -66,16 +66,17 @@ class CameraCorrection:
         self.model_text = f'{model.method}{" + harmonisation" if model.post is not None else ""} ({corrector.kind})'
         return True, f'{self.camera}: colour model {self.model_text}'
 
-    def apply(self, rgb: np.ndarray) -> np.ndarray | None:
+    def apply(self, rgb: np.ndarray, window: tuple[int, int, int, int, int] | None = None) -> np.ndarray | None:
         """The corrected image (the input itself while there is no model and images pass
-        through), or None when it is dropped. The output buffer is reused: publish a copy."""
+        through), or None when it is dropped. The output buffer is reused: publish a copy.
+        ``window``: ``rgb`` is a region of the camera's image (``ImageCorrector``)."""
         if self.corrector is None:
             if not self.passthrough:
                 return None
             self.passed += 1
             return rgb
         t0 = time.perf_counter()
-        out = self._buffer = self.corrector(rgb, self._buffer)
+        out = self._buffer = self.corrector(rgb, self._buffer, window)
         self.ms.append((time.perf_counter() - t0) * 1e3)
         self.corrected += 1
         return out

@@ -218,9 +218,10 @@ class DepthFilter(Node):
     def _publish(self, o: Outcome) -> None:
         t0 = time.perf_counter()
         stamp, frame = o.pair.stamp_ns, o.pair.frame_id
-        # camera_info first, so a subscriber rarely sees the image before it
-        self.pub_info.publish(camera_model_to_info(o.cleaner.output_model, stamp, frame))
-        self.pub_depth.publish(image_to_cdr(depth_to_millimetres(o.result.depth), '16UC1', stamp, frame))
+        if self.full_depth_wanted():
+            # camera_info first, so a subscriber rarely sees the image before it
+            self.pub_info.publish(camera_model_to_info(o.cleaner.output_model, stamp, frame))
+            self.pub_depth.publish(image_to_cdr(depth_to_millimetres(o.result.depth), '16UC1', stamp, frame))
         if self.node_cfg.publish_points and self.pub_points.get_subscription_count():
             xyz, rgb = o.cleaner.points(o.result)
             self.pub_points.publish(points_to_pointcloud2(xyz, rgb, stamp, frame))
@@ -229,6 +230,11 @@ class DepthFilter(Node):
         self.processed += 1
         self.empty_streak = 0 if o.result.depth.any() else self.empty_streak + 1
         self.last_ms = sum(o.result.timings_ms.values()) + (time.perf_counter() - t0) * 1000.0
+
+    def full_depth_wanted(self) -> bool:
+        """Whether ``depth/image_clean`` is published: always here (it is this node's output);
+        the camera pipeline sends it only while someone subscribes."""
+        return True
 
     def _clean_plate_done(self, message: str) -> None:
         self.get_logger().info(message)

@@ -12,12 +12,17 @@ from volcap_core.settings import setting
 from .tsdf import CameraView
 
 ALL = 'all'
+WIRE, FULL = 'wire', 'full'      # the tsdf_fusion node's inputs
 
 
 @dataclass
 class FusionNodeConfig:
     """The tsdf_fusion node's own settings (the fusion itself: ``FusionConfig``)."""
     cameras: tuple[str, ...] = setting((ALL,), 'cameras to fuse ("all": every calibrated camera)', read_only=True)
+    input: str = setting(WIRE, 'what each camera sends: "wire" (the camera pipelines\' compact wire: foreground '
+                         'regions, compressedDepth + JPEG with roi / binning) or "full" (depth/image_clean and '
+                         'color/image_corrected, as depth_filter + color_corrector publish them)',
+                         choices=(WIRE, FULL), read_only=True)
     sync_tolerance_ms: float = setting(0.0, 'stamp tolerance within a frame set, ms (0: just under half the frame '
                                        'period the stamps show)', 0.0, 100.0,
                                        read_only=True)

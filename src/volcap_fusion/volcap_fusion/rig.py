@@ -14,7 +14,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from volcap_core import wire
 from volcap_core.calibration import Calibration
+from volcap_core.conversions import compressed_to_rgb
 from volcap_core.poses import invert
 
 from .frame_sets import FrameSetViews, frame_set_views
@@ -77,3 +79,13 @@ class RigFusion:
         leaves the sequence whole up to the frame before."""
         self.writer.write(fused.model, fused.stamp_ns, fused.plan.missing, fused.frame, invert(fused.T_frame_world),
                           fused.encoded)
+
+
+def wire_view(cam: str, depth_msg, depth_info, color_msg, color_info, T_frame_color: np.ndarray) -> CameraView:
+    """One camera's wire (``volcap_core.wire``) as the view fusion integrates: each region
+    decoded and put back on its full (binned) grid."""
+    model, region = wire.info_region(depth_info)
+    depth_mm, depth_model = wire.place_region(wire.decode_depth(depth_msg), region, model)
+    model, region = wire.info_region(color_info)
+    color, color_model = wire.place_region(compressed_to_rgb(color_msg), region, model)
+    return CameraView(cam, depth_mm, depth_model, color, color_model, T_frame_color)

@@ -4,9 +4,13 @@ mesh per time step.
     ros2 run volcap_fusion tsdf_fusion --ros-args -p voxel_size:=0.006 -p output_dir:=/data/take1
 
 Subscribes, per camera of the calibration on ``/volcap/calibration`` (or the ``cameras``
-parameter), relative names only: ``<cam>/depth/image_clean`` and ``<cam>/color/image_corrected``,
-each with its camera_info (``.../camera_info``, published by the depth filter and the colour
-corrector). A frame set is the cameras' images with the same stamp (within
+parameter), relative names only, with ``input:=wire`` (the default) the camera pipelines' compact
+wire (``volcap_core.wire``): ``<cam>/wire/depth/image/compressedDepth`` and
+``<cam>/wire/color/image/compressed`` with ``<cam>/wire/depth/camera_info`` and
+``<cam>/wire/color/camera_info`` (each region's roi / binning, paired with its image by stamp);
+with ``input:=full`` ``<cam>/depth/image_clean`` and ``<cam>/color/image_corrected``, each with
+its camera_info (``.../camera_info``, published by the depth filter and the colour corrector).
+A frame set is the cameras' images with the same stamp (within
 ``sync_tolerance_ms``); one still incomplete after ``frame_timeout_ms`` is fused from the
 cameras that arrived, and the missing ones are reported on ``volcap/diagnostics``.
 
@@ -33,15 +37,22 @@ from collections import deque
 
 import numpy as np
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker
 
-from volcap_core import qos, topics
+from volcap_core import qos, topics, wire
 from volcap_core.calibration import Calibration
 from volcap_core.camera import depth_to_millimetres
 from volcap_core.cdr import mesh_to_marker_cdr
-from volcap_core.conversions import camera_info_to_model, color_to_rgb, depth_to_metres, image_to_numpy, points_to_pointcloud2, stamp_to_ns
+from volcap_core.conversions import (
+    camera_info_to_model,
+    color_to_rgb,
+    depth_to_metres,
+    image_to_numpy,
+    points_to_pointcloud2,
+    stamp_to_ns,
+)
 from volcap_core.errors import BadInput
 from volcap_core.gltf_marker import glb_marker
 from volcap_core.health import SilenceWatch
@@ -49,9 +60,9 @@ from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_
 from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
-from .frame_sets import FusionNodeConfig, PhaseTimeline, fused_cameras, fused_phase
+from .frame_sets import WIRE, FusionNodeConfig, PhaseTimeline, fused_cameras, fused_phase
 from .glb import EncodeConfig, simplify
-from .rig import FusedSet, RigFusion
+from .rig import FusedSet, RigFusion, wire_view
 from .sequence import SequenceWriter, frame_rate
 from .tsdf import CameraView, FusionConfig, TsdfFusion, open3d_device
 
@@ -131,6 +142,19 @@ class TsdfFusionNode(Node):
             self.destroy_subscription(sub)
         profile = qos.EVERY_FRAME if self.node_cfg.reliable else qos.CAMERA
         subs = []
+        if self.node_cfg.input == WIRE:
+            # Each region has its own camera_info (roi): they are paired by stamp in the frame set.
+            streams = ('depth_info', 'color_info', 'depth', 'color')
+            kinds = {'depth_info': (CameraInfo, wire.WIRE_DEPTH_INFO), 'color_info': (CameraInfo, wire.WIRE_COLOR_INFO),
+                     'depth': (CompressedImage, wire.WIRE_DEPTH), 'color': (CompressedImage, wire.WIRE_COLOR)}
+            for cam in cameras:
+                for stream in streams:
+                    kind, topic = kinds[stream]
+                    subs.append(self.create_subscription(
+                        kind, topics.camera_topic(cam, topic), lambda m, c=cam, s=stream: self._on_image(c, s, m),
+                        profile))
+            self._start_sync(cameras, subs, streams)
+            return
         # camera_info first: the executor serves ready subscriptions in creation order
         for cam in cameras:
             for topic, stream in ((topics.DEPTH_CLEAN_INFO, 'depth'), (topics.COLOR_CORRECTED_INFO, 'color')):
@@ -141,17 +165,20 @@ class TsdfFusionNode(Node):
             for topic, stream in ((topics.DEPTH_CLEAN, 'depth'), (topics.COLOR_CORRECTED, 'color')):
                 subs.append(self.create_subscription(
                     Image, topics.camera_topic(cam, topic), lambda m, c=cam, s=stream: self._on_image(c, s, m), profile))
+        self._start_sync(cameras, subs, ('depth', 'color'))
+
+    def _start_sync(self, cameras: list[str], subs: list, streams: tuple[str, ...]) -> None:
         self.camera_subscriptions = subs
         self.cameras = cameras
-        self.sync = FrameSetSynchronizer(cameras, ('depth', 'color'),
+        self.sync = FrameSetSynchronizer(cameras, streams,
                                          tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
                                          timeout_ns=int(self.node_cfg.frame_timeout_ms * 1e6), max_pending=4)
-        self.get_logger().info(f'fusing {len(cameras)} cameras: {", ".join(cameras)}')
+        self.get_logger().info(f'fusing {len(cameras)} cameras ({self.node_cfg.input}): {", ".join(cameras)}')
 
     def _on_phase(self, msg: String) -> None:
         self.phases.change(topics.parse_phase(msg.data))
 
-    def _on_image(self, camera: str, stream: str, msg: Image) -> None:
+    def _on_image(self, camera: str, stream: str, msg: Image | CompressedImage | CameraInfo) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         if stream == 'depth':                   # one frame per camera and frame set
             self.silence.arrived(camera, time.monotonic_ns())
@@ -186,9 +213,13 @@ class TsdfFusionNode(Node):
             self.work_s += time.process_time() - cpu0
 
     def _fuse_set(self, fs: FrameSet, calibration: Calibration, cameras: list[str], t0: float) -> None:
-        pairs = {c: (fs.get(c, 'depth'), fs.get(c, 'color')) for c in cameras}
+        if self.node_cfg.input == WIRE:
+            streams, to_view = ('depth', 'depth_info', 'color', 'color_info'), wire_view
+        else:
+            streams, to_view = ('depth', 'color'), self._view
+        pairs = {c: tuple(fs.get(c, s) for s in streams) for c in cameras}
         parts = {c: p for c, p in pairs.items() if None not in p}
-        fused = self.rig.fuse(fs.stamp_ns, calibration, cameras, parts, lambda c, p, T: self._view(c, *p, T),
+        fused = self.rig.fuse(fs.stamp_ns, calibration, cameras, parts, lambda c, p, T: to_view(c, *p, T),
                               glb=bool(self.pub_glb.get_subscription_count()))
         plan, model, encoded, frame = fused.plan, fused.model, fused.encoded, fused.frame
         if plan.problems:

@@ -10,8 +10,13 @@ and services of ``depth_filter`` (its node class is extended here) and the colou
 ``color_corrector`` (``passthrough``, ``neural_models``; the model comes from the latched
 ``/volcap/calibration``).
 
-Publishes, relative to the namespace: ``depth/image_clean`` (16UC1 mm on the colour grid at the
-output size) with its camera_info, ``color/image_corrected`` (rgb8, the colour image's size and
+Publishes, relative to the namespace, the compact wire the fusion host takes
+(``volcap_core.wire``; ``wire:=false`` turns it off): the cleaned depth's foreground region as
+``compressedDepth`` PNG on ``wire/depth/image/compressedDepth`` and the corrected colour of that
+region as JPEG on ``wire/color/image/compressed``, each with its camera_info (``roi`` /
+``binning``) on ``wire/depth/camera_info`` and ``wire/color/camera_info``. Only while someone
+subscribes (or with ``wire:=false``): ``depth/image_clean``
+(16UC1 mm on the colour grid at the output size) with its camera_info, ``color/image_corrected`` (rgb8, the colour image's size and
 header) with ``color/image_corrected/camera_info`` for every cleaned frame while someone
 subscribes to it, and ``points`` (while subscribed). The two separate nodes stay available for
 a rig that wants them apart; their topics are the same, so fusion takes either.
@@ -20,12 +25,12 @@ from __future__ import annotations
 
 import sys
 
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 
 from volcap_color.config import ColorCorrectionConfig
 from volcap_color.corrector import CameraCorrection
-from volcap_core import qos, topics
+from volcap_core import qos, topics, wire
 from volcap_core.cdr import image_to_cdr
 from volcap_core.conversions import camera_model_to_info
 from volcap_core.diagnostics import LEVELS
@@ -35,7 +40,7 @@ from volcap_filter.mask import BackgroundModel
 from volcap_filter.pipeline import DepthFilterConfig
 from volcap_filter.session import CleanPlateSession, Outcome
 
-from .camera import CameraPipeline
+from .camera import CameraPipeline, WireConfig
 
 
 class CameraPipelineNode(DepthFilter):
@@ -56,6 +61,14 @@ class CameraPipelineNode(DepthFilter):
         self.pipeline.correction = correction
         self.pub_color = self.create_publisher(Image, topics.COLOR_CORRECTED, qos.DRIVER)
         self.pub_color_info = self.create_publisher(CameraInfo, topics.COLOR_CORRECTED_INFO, qos.DRIVER)
+        self.wire_cfg = declare_config(self, WireConfig, self._on_wire_config)
+        self.wire_bytes = 0
+        self.wire_frames = 0
+        self.wire_ms: dict[str, float] = {}
+        if self.wire_cfg.wire:
+            self.pub_wire = {name: self.create_publisher(kind, topic, qos.DRIVER) for name, kind, topic in (
+                ('depth_info', CameraInfo, wire.WIRE_DEPTH_INFO), ('color_info', CameraInfo, wire.WIRE_COLOR_INFO),
+                ('depth', CompressedImage, wire.WIRE_DEPTH), ('color', CompressedImage, wire.WIRE_COLOR))}
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
 
     def make_session(self, cfg: DepthFilterConfig, background: BackgroundModel | None) -> CleanPlateSession:
@@ -64,6 +77,12 @@ class CameraPipelineNode(DepthFilter):
                                        output_scale=self.node_cfg.output_scale, decode=decode,
                                        max_held=self.node_cfg.max_held_frames, background=background)
         return self.pipeline.session
+
+    def _on_wire_config(self, cfg: WireConfig) -> None:
+        self.wire_cfg = cfg
+
+    def full_depth_wanted(self) -> bool:
+        return not self.wire_cfg.wire or self.pub_depth.get_subscription_count() > 0
 
     def _on_color_config(self, cfg: ColorCorrectionConfig) -> None:
         self.color_cfg = cfg
@@ -78,6 +97,8 @@ class CameraPipelineNode(DepthFilter):
 
     def _publish(self, o: Outcome) -> None:
         super()._publish(o)
+        if self.wire_cfg.wire:
+            self._publish_wire(o)
         if not self.pub_color.get_subscription_count():
             return       # nobody takes the full-size colour: it is not corrected either
         color = self.pipeline.correct(o.color, keep=False)     # serialised at once: no copy
@@ -88,8 +109,27 @@ class CameraPipelineNode(DepthFilter):
         self.pub_color_info.publish(camera_model_to_info(self.session.models['color'], stamp, frame))
         self.pub_color.publish(image_to_cdr(color, 'rgb8', stamp, frame))
 
+    def _publish_wire(self, o: Outcome) -> None:
+        stamp, frame = o.pair.stamp_ns, o.pair.frame_id
+        out = self.pipeline.wire(o.result.depth, o.cleaner.output_model, o.color, self.session.models['color'],
+                                 stamp, frame, self.wire_cfg)
+        if out is None:
+            return       # no colour model and passthrough off
+        pub = self.pub_wire
+        pub['depth_info'].publish(out.depth_info)       # camera_info first, as for the full-size images
+        pub['color_info'].publish(out.color_info)
+        pub['depth'].publish(out.depth)
+        pub['color'].publish(out.color)
+        self.wire_bytes += out.bytes
+        self.wire_frames += 1
+        self.wire_ms = {k: round(v, 2) for k, v in out.timings_ms.items()}
+
     def status(self) -> tuple[str, str, dict]:
         level, message, values = super().status()
+        if self.wire_frames:
+            values = {**values, 'wire_frames': self.wire_frames,
+                      'wire_kbytes_per_frame': round(self.wire_bytes / self.wire_frames / 1000, 1),
+                      **{f'wire_{k}': v for k, v in self.wire_ms.items()}}
         color_level, color_message, color_values = self.pipeline.correction.status()
         if LEVELS[color_level] > LEVELS[level]:
             level = color_level
