@@ -76,3 +76,32 @@ def test_an_overloaded_fusion_stays_live_and_says_so(live_bag, live_calibration)
     for s in summaries:
         if s['drops_per_s']['tsdf_fusion']['dropped'] > 0:
             assert s['trouble'], s
+
+
+@pytest.mark.timeout(300)
+def test_a_recorded_wire_feeds_the_fusion_host_alone(live_bag, live_calibration, tmp_path):
+    """`volcap wire` records what the camera hosts send; `volcap live --bag WIREBAG` starts only
+    the fusion host on it (no camera pipeline), and meshes come out in stamp order from every
+    camera."""
+    from volcap_core import wire
+    from volcap_core.bag_reader import BagReader
+    from volcap_pipeline.wire_bag import WireBagConfig, record_wire
+    report = record_wire(WireBagConfig(live_bag, live_calibration, tmp_path / 'wire', progress=False))
+    assert report.frame_sets == 3 and report.cameras == ['cam0', 'cam1', 'cam2', 'cam3']
+    assert report.bytes_per_camera_frame < report.raw_bytes_per_camera_frame / 10
+    with BagReader(tmp_path / 'wire') as bag:
+        counts = bag.topic_counts
+        assert all(counts[f'{c}/{t}'] == 3 for c in report.cameras for t in
+                   (wire.WIRE_DEPTH, wire.WIRE_COLOR, wire.WIRE_DEPTH_INFO, wire.WIRE_COLOR_INFO))
+        first = next(bag.messages(['cam0/' + wire.WIRE_DEPTH])).decode()
+        info = next(bag.messages(['cam0/' + wire.WIRE_DEPTH_INFO])).decode()
+    assert first.format == '16UC1; compressedDepth png' and 0 < info.roi.width < info.width
+    result = run_live(LiveConfig(live_calibration, bag=tmp_path / 'wire', voxel_size=0.01, rate=0.5, seconds=20,
+                                 warmup_s=6, probe=True))
+    assert all(c == 0 for c in result['node_exit_codes'].values()), result['node_exit_codes']
+    assert set(result['node_exit_codes']) - {'volcap_renderer_probe'} == {'bag_player', 'tsdf_fusion'}
+    stamps = [stamp for _, stamp, _ in result['meshes']]
+    assert len(stamps) >= 3 and stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    shares = [s['complete_share'] for s in after_warmup(result, 6) if s['complete_share'] is not None]
+    assert shares and sum(shares) / len(shares) > 0.5, shares
+    assert result['summaries'][-1]['stages_reporting']['camera_pipeline'] == 0

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
@@ -17,10 +17,10 @@ from visualization_msgs.msg import Marker
 from volcap_bringup.cli import main
 from volcap_bringup.graph import camera_remaps, rig_graph
 from volcap_bringup.processes import start_node
-from volcap_core import qos, topics
+from volcap_core import qos, topics, wire
 from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration, CameraCalibration
-from volcap_core.conversions import image_to_numpy
+from volcap_core.conversions import compressed_to_rgb, image_to_numpy
 from volcap_core.frames import frame_sets, read_rig
 from volcap_core.poses import invert
 from volcap_studio.session import GroundTruth
@@ -72,7 +72,9 @@ def test_camera_pipeline_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag,
     remaps = camera_remaps(layout, registered)
     outputs = [('/cam0/' + topics.DEPTH_CLEAN, Image), ('/cam0/' + topics.DEPTH_CLEAN_INFO, CameraInfo),
                ('/cam0/' + topics.COLOR_CORRECTED, Image), ('/cam0/' + topics.COLOR_CORRECTED_INFO, CameraInfo),
-               ('/' + topics.MESH, Marker)]
+               ('/' + topics.MESH, Marker), ('/cam0/' + wire.WIRE_DEPTH, CompressedImage),
+               ('/cam0/' + wire.WIRE_DEPTH_INFO, CameraInfo), ('/cam0/' + wire.WIRE_COLOR, CompressedImage),
+               ('/cam0/' + wire.WIRE_COLOR_INFO, CameraInfo)]
     probe = probe_factory([(t, kind, qos.EVERY_FRAME) for t, kind in outputs]
                           + [('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     try:
@@ -115,6 +117,28 @@ def test_camera_pipeline_and_fusion_on_a_vendor_driver_with_remaps_only(k4a_bag,
     assert all(abs(info.k[0] - cam.color.fx) < 1e-6 for info in paired)
     mesh = probe.got['/' + topics.MESH][-1][1]
     assert len(mesh.points) > 3000 and mesh.header.frame_id == color_frame     # one camera, default threshold
+    # The wire the fusion took: image_transport's formats, crop_decimate's camera_info, and the
+    # cleaned depth inside the region sent losslessly (nothing outside it)
+    def stamp(m):
+        return m.header.stamp.sec, m.header.stamp.nanosec
+    wire_msgs = {t: {stamp(m): m for _, m in probe.got['/cam0/' + t]}
+                 for t in (wire.WIRE_DEPTH, wire.WIRE_DEPTH_INFO, wire.WIRE_COLOR, wire.WIRE_COLOR_INFO)}
+    full = {stamp(m): m for _, m in probe.got['/cam0/' + topics.DEPTH_CLEAN]}
+    common = sorted(set(full).intersection(*wire_msgs.values()))
+    assert common, 'no stamp with the full depth and the whole wire'
+    k = common[-1]
+    depth_msg, depth_info = wire_msgs[wire.WIRE_DEPTH][k], wire_msgs[wire.WIRE_DEPTH_INFO][k]
+    color_msg, color_info = wire_msgs[wire.WIRE_COLOR][k], wire_msgs[wire.WIRE_COLOR_INFO][k]
+    assert depth_msg.format == '16UC1; compressedDepth png' and color_msg.format == 'rgb8; jpeg compressed bgr8'
+    assert depth_msg.header.frame_id == color_msg.header.frame_id == color_frame
+    assert (depth_info.width, depth_info.height) == (1280, 720) and depth_info.binning_x == depth_info.binning_y == 1
+    roi = depth_info.roi
+    assert 0 < roi.width * roi.height < 1280 * 720 and roi.x_offset + roi.width <= 1280
+    model, region = wire.info_region(depth_info)
+    placed, _ = wire.place_region(wire.decode_depth(depth_msg), region, model)
+    np.testing.assert_array_equal(placed, image_to_numpy(full[k]))
+    # (no clean plate here, so the region is the whole room: the wire's size is bench/live.py's)
+    assert compressed_to_rgb(color_msg).shape[:2] == wire.info_region(color_info)[1].shape
 
 
 def test_a_two_camera_rig_of_vendor_drivers_is_calibrated_and_fused(calib_bag, ros_context, procs, probe_factory,

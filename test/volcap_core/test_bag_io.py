@@ -211,3 +211,46 @@ def test_restamping_keeps_a_frame_sets_capture_offsets_at_any_rate():
     assert stamps[1] - stamps[0] == 1_000_000            # still 1 ms: the set stays a set
     nxt = restamper.stamp(1_033_000_000, s.wall_time(1_033_000_000), half_period)
     assert nxt == s.wall_time(1_033_000_000)              # the next set moves to its own play time
+
+
+@pytest.mark.parametrize('kept', [0.35, 0.7])
+def test_a_cut_bag_is_self_describing_for_the_mcap_readers(tmp_path, kept):
+    """Every whole chunk declares its channels (and their schemas) before its messages, as the
+    reference writer does for the chunk of a channel's first message: the ``mcap`` library's
+    stream reader, which knows nothing but the records it has met, decodes every message of a
+    cut file up to the cut; and a file whose first chunk is damaged still names the rest."""
+    from mcap.records import Channel, Chunk, Message, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+    write_chunked(tmp_path / 'bag', 20, chunk_bytes=30_000)       # a few messages per chunk
+    mcap = tmp_path / 'bag' / 'bag_0.mcap'
+    data = bytearray(mcap.read_bytes())
+    cut = bytes(data[:int(len(data) * kept)])
+    known, decoded, chunks = {}, [], 0
+    import io
+    try:
+        for record in StreamReader(io.BytesIO(cut), emit_chunks=True).records:
+            if isinstance(record, Chunk):
+                chunks += 1
+                declared = {}
+                for r in breakup_chunk(record, validate_crc=True):
+                    if isinstance(r, Schema):
+                        declared[('schema', r.id)] = r
+                    elif isinstance(r, Channel):
+                        assert ('schema', r.schema_id) in declared       # schema before channel, same chunk
+                        declared[('channel', r.id)] = r
+                        known[r.id] = r.topic
+                    elif isinstance(r, Message):
+                        assert ('channel', r.channel_id) in declared     # this chunk names it
+                        decoded.append((known[r.channel_id], r.log_time))
+            assert not isinstance(record, (Channel, Schema))             # only inside chunks
+    except Exception as e:   # the cut: the stream reader stops at the partial record
+        assert 'EndOfFile' in type(e).__name__ or 'Invalid' in type(e).__name__ or 'truncat' in str(e).lower(), e
+    images = [t for topic, t in decoded if topic == '/cam0/color/image_raw']
+    assert chunks >= 2 and images == list(range(1000, 1000 + len(images))) and len(images) >= 20 * kept - 4
+    # a damaged first chunk: the later ones still decode with their names
+    first = data.index(bytes([0]) * 1000)
+    data[first:first + 200] = bytes(range(200))
+    mcap.write_bytes(bytes(data))
+    with BagReader(tmp_path / 'bag') as bag:
+        read = [image_to_numpy(m.decode())[0, 0, 0] for m in bag.messages(['cam0/color/image_raw'])]
+    assert read and read[0] > 0 and read == list(range(read[0], 20))

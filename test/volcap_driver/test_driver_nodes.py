@@ -223,17 +223,31 @@ def test_start_offset_and_loop(studio_bag, probe_factory, procs, play):
     assert stop(procs.pop()) == 0
 
 
-def test_late_sets_are_dropped_whole():
-    """A player that fell behind drops whole frame sets (colour and depth stamped 12 ms apart stay
-    together) and sends the next set that is on time."""
-    from volcap_driver.playback import LateSetFilter
+def test_a_player_that_cannot_keep_up_sends_an_even_subset():
+    """A player that falls behind degrades as a camera does: whole frame sets (colour and depth
+    stamped 12 ms apart stay together), one in N evenly spaced, N rising while it is late and
+    falling again once it keeps up; a set far too late is sent and the schedule moves on."""
+    from volcap_driver.playback import SetPacer
     period, half = 33_333_333, 16_666_666
-    late = LateSetFilter(max_lag_ns=100_000_000)
-    sent = []
-    for k, lag_ms in enumerate((0, 150, 150, 20)):
+    pacer = SetPacer(max_lag_ns=100_000_000)
+    now, kept = 0, []
+    for k in range(300):                 # sending a set costs 50 ms, a frame period is 33 ms
         target = k * period
-        now = target + lag_ms * 1_000_000
-        sent.append([late.send(target + offset, now + offset, half) for offset in (0, 12_000_000, 12_000_000)])
-    assert sent == [[True] * 3, [False] * 3, [False] * 3, [True] * 3]
-    assert late.dropped_sets == 2
-    assert all(LateSetFilter(0).send(0, 10**12, half) for _ in range(3))
+        send, late = pacer.start_set(target, now)
+        assert not late
+        if send:
+            assert all(pacer.send(target + 12_000_000, now, half) for _ in range(2))    # the set stays whole
+            now = max(now, target) + 50_000_000
+            kept.append(k)
+        else:
+            assert not pacer.send(target + 12_000_000, now, half)
+    gaps = [b - a for a, b in zip(kept, kept[1:])]
+    assert pacer.every in (2, 3) and set(gaps[-20:]) <= {2, 3}        # one in 2-3, steady
+    assert max(gaps) <= 4 and len(kept) > 300 / 4                       # never a silence
+    assert 'one frame set in' in pacer.status() and pacer.left_out == 300 - len(kept)
+    every = pacer.every
+    for k in range(300, 300 + 3 * SetPacer.CALM_SETS * every):   # on time again: back to every set
+        pacer.start_set(k * period, k * period)
+    assert pacer.every < every
+    assert SetPacer(100_000_000).start_set(0, 10**9) == (True, True)    # far too late: sent, schedule moves on
+    assert all(SetPacer(0).start_set(0, 10**12) == (True, False) for _ in range(3))

@@ -14,6 +14,8 @@
     volcap eval color BAG --calibration calibration.yaml [--json OUT.json] [--figures DIR]
     volcap color-fit BAG --calibration calibration.yaml --out calibration_color.yaml
     volcap run BAG --calibration calibration.yaml --out DIR [--composed] [--voxel 0.004]
+    volcap wire BAG --calibration calibration.yaml --out WIREBAG
+    volcap live --calibration calibration.yaml [--bag BAG | --bag WIREBAG] [--seconds S]
     volcap view DIR | --live [--port 8080]
     volcap operator [--cameras cam0,cam1] [--hz 2] [--web-port 9090]
     volcap eval fusion DIR BAG [--json OUT.json]

@@ -1,4 +1,4 @@
-"""`volcap run`, `volcap live`, `volcap view`, `volcap operator` and `volcap fuse-frames`."""
+"""`volcap run`, `volcap wire`, `volcap live`, `volcap view`, `volcap operator` and `volcap fuse-frames`."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -19,6 +19,17 @@ def cmd_run(args) -> int:
     report = run(cfg)
     print('\n'.join(report.lines()))
     return 0 if report.ok else 1
+
+
+def cmd_wire(args) -> int:
+    from volcap_pipeline.wire_bag import WireBagConfig, record_wire, wire_summary
+    cfg = config_from_args(WireBagConfig, args, bag=args.bag, calibration=args.calibration, out=args.out,
+                           progress=not args.quiet)
+    report = record_wire(cfg)
+    print(wire_summary(report))
+    print(f'per camera and frame (ms): {report.ms_per_camera_frame}')
+    print(f'play it to the fusion host alone: volcap live --bag {report.path} --calibration {args.calibration}')
+    return 0
 
 
 def cmd_live(args) -> int:
@@ -89,6 +100,17 @@ def add_parsers(sub) -> None:
     add_arguments(r, RunConfig)
     r.add_argument('--quiet', action='store_true')
     r.set_defaults(func=cmd_run)
+
+    from volcap_pipeline.wire_bag import WireBagConfig
+    w = sub.add_parser('wire', help='run every camera\'s pipeline over a raw bag and record the compact wire the '
+                                    'camera hosts send the fusion host (volcap live --bag plays it to the fusion '
+                                    'host alone)')
+    w.add_argument('bag')
+    w.add_argument('--calibration', required=True)
+    w.add_argument('--out', required=True, help='wire bag directory to create')
+    add_arguments(w, WireBagConfig)
+    w.add_argument('--quiet', action='store_true')
+    w.set_defaults(func=cmd_wire)
 
     live = sub.add_parser('live', help='the graph on live topics (camera drivers, or a bag looped at real time), '
                                        'kept real time by admitting only the frame sets it can process')

@@ -5,7 +5,8 @@ Every node runs with its live defaults (keep-last queues, one frame set waiting 
 so the graph drops whole frame sets early (the same ones in every stage) instead of queueing
 them. The frame source is the cameras' drivers (``driver``) or, standing in for them, a bag
 looped at real time with fresh stamps: one pass from the start (the filters learn the clean
-plate), then the capture part over and over. This process publishes the calibration (latched,
+plate), then the capture part over and over. A wire bag (``volcap wire``) starts the fusion host
+alone, fed with the recorded wire as the camera hosts would send it. This process publishes the calibration (latched,
 as calibration_service does), hosts the controller and prints its figures once a second; with
 ``probe`` it also hosts a renderer stand-in that receives every mesh and times it.
 """
@@ -18,11 +19,12 @@ from typing import Callable
 import numpy as np
 import psutil
 
-from volcap_core import topics
+from volcap_core import topics, wire
 from volcap_core.bag_reader import BagReader
 from volcap_core.calibration import Calibration
 from volcap_core.errors import BadInput
 from volcap_core.frames import camera_topics, read_rig
+from volcap_pipeline.wire_bag import WIRE_STREAMS, is_wire_bag, wire_cameras
 
 from .graph import (
     LIVE_FRAME_TIMEOUT_MS,
@@ -46,12 +48,44 @@ def _capture_offset_s(reader: BagReader) -> float:
     return 0.0
 
 
+def fusion_host_nodes(cfg: LiveConfig, cameras: list[str], bag_cameras: list[str], fusion: dict
+                      ) -> tuple[list[NodeSpec], list[str], dict]:
+    """The fusion host alone, fed by a recorded wire (``volcap wire``) looped at real time with
+    fresh stamps, as the camera hosts would send it: the player, tsdf_fusion on the wire and the
+    live controller watching the wire's camera_info."""
+    missing = [c for c in cameras if c not in bag_cameras]
+    if missing:
+        raise BadInput(f'cameras {missing} are not in the wire bag {cfg.bag} (it has {", ".join(bag_cameras)})')
+    played = [topics.camera_topic(c, t) for c in cameras for t in WIRE_STREAMS]
+    watched = {topics.camera_topic(c, t) for c in (cameras[0], cameras[-1])
+               for t in (wire.WIRE_COLOR_INFO, wire.WIRE_DEPTH_INFO)}
+    expected = {t: 1 + (t in watched) for t in played}
+    source = ('volcap_driver', 'bag_player', '', {
+        'bag': str(cfg.bag), 'rate': cfg.rate, 'loop': True, 'restamp': True, 'loop_offset': 0.0,
+        'max_lag_ms': 100.0, 'topics': played, 'wait_for_subscribers': 60.0, 'exit_when_done': False,
+        'subscribers': [f'{t}={n}' for t, n in expected.items()]}, {})
+    fusion_node = ('volcap_fusion', 'tsdf_fusion', '', {**fusion, 'input': 'wire'}, {})
+    info = {'color/camera_info': wire.WIRE_COLOR_INFO, 'depth/camera_info': wire.WIRE_DEPTH_INFO}
+    controller = live_controller(cameras, {'every': cfg.every, 'latency_budget_ms': cfg.latency_budget_ms},
+                                 remaps={c: info for c in cameras})
+    layout = {c: {'wire': True} for c in cameras}
+    return [source, fusion_node, controller], cameras, layout
+
+
 def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec], list[str], dict]:
-    """(node specs in start order with the controller last, cameras, per-camera topic layout)."""
+    """(node specs in start order with the controller last, cameras, per-camera topic layout).
+    A wire bag (``volcap wire``) starts the fusion host alone (``fusion_host_nodes``)."""
     cameras = list(cfg.cameras or calibration.cameras)
     absent = [c for c in cameras if c not in calibration.cameras]
     if absent:
         raise BadInput(f'cameras {absent} are not in the calibration {cfg.calibration}')
+    if cfg.bag is not None:
+        with BagReader(cfg.bag) as reader:
+            bag_cameras = wire_cameras(reader) if is_wire_bag(reader) else None
+        if bag_cameras is not None:
+            fusion = {'voxel_size': cfg.voxel_size, 'output_dir': cfg.output_dir,
+                      'frame_timeout_ms': LIVE_FRAME_TIMEOUT_MS * cfg.latency_budget_ms / 1000.0}
+            return fusion_host_nodes(cfg, cameras, bag_cameras, fusion)
     filters = {c: {} for c in cameras}
     corrector: dict = {}
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': cfg.output_dir,
@@ -134,7 +168,12 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
             probe = session.host(RendererProbe(reliable=False)) if cfg.probe else None
             session.compose(controller_spec, on_summary=summarised)
             session.start_graph(graph, cfg.composed)
-            session.wait_until_subscribed(graph_subscriptions(cameras, layout, cfg.split_stages), timeout=120.0)
+            if any('wire' in v for v in layout.values()):     # the fusion host alone, on a recorded wire
+                wanted = {'/' + topics.camera_topic(c, t): {('/', 'tsdf_fusion')} for c in cameras
+                          for t in (wire.WIRE_DEPTH, wire.WIRE_COLOR)}
+            else:
+                wanted = graph_subscriptions(cameras, layout, cfg.split_stages)
+            session.wait_until_subscribed(wanted, timeout=120.0)
             if source is not None:
                 nice = cfg.source_nice
                 session.start(source, preexec_fn=(lambda: os.nice(nice)) if nice else None)

@@ -104,12 +104,42 @@ class BagReader:
             self.losses[key] = what
             log.warning('bag %s: %s', self.path, what)
 
-    def _stream(self) -> Iterator[tuple]:
-        """(topic, msgtype, latched, log_time, data) of every readable message, in file order."""
+    def _stream(self, start_ns: int | None = None) -> Iterator[tuple]:
+        """(topic, msgtype, latched, log_time, data) of every readable message, in file order
+        (from the first chunk that may hold ``start_ns`` where a file's summary says where)."""
         for mcap in self._mcaps:
-            yield from self._stream_file(mcap)
+            yield from self._stream_file(mcap, start_ns)
 
-    def _stream_file(self, mcap: Path) -> Iterator[tuple]:
+    @staticmethod
+    def _seek_start(f, start_ns: int | None, record_of) -> bool:
+        """Position ``f`` at the first chunk whose messages reach ``start_ns``, as the file's
+        summary (its chunk index) tells; its schemas and channels are read from the summary, so
+        a file written with them only before its first chunk still names every message. Without
+        a usable summary (a cut file) the stream starts at the beginning. A looping player starts
+        each pass here instead of reading the clean plate and the board again (seconds of silence
+        per pass on an 8-camera bag). False: the summary says no message reaches ``start_ns``."""
+        from mcap.reader import SeekingReader
+        f.seek(0)
+        if start_ns is None:
+            return True
+        try:
+            summary = SeekingReader(f).get_summary()
+        except Exception:
+            summary = None
+        f.seek(0)
+        if summary is None or not summary.chunk_indexes:
+            return True
+        later = [c.chunk_start_offset for c in summary.chunk_indexes if c.message_end_time >= start_ns]
+        if not later:
+            return False
+        for schema in summary.schemas.values():
+            record_of(schema)
+        for channel in summary.channels.values():
+            record_of(channel)
+        f.seek(min(later))
+        return True
+
+    def _stream_file(self, mcap: Path, start_ns: int | None = None) -> Iterator[tuple]:
         from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
         from mcap.stream_reader import StreamReader, breakup_chunk
         schemas, channels = {}, {}
@@ -125,7 +155,10 @@ class BagReader:
         try:
             with open(mcap, 'rb') as f:
                 size = mcap.stat().st_size
-                for record in StreamReader(f, emit_chunks=True, record_size_limit=size).records:
+                if not self._seek_start(f, start_ns, record_of):
+                    return
+                for record in StreamReader(f, skip_magic=f.tell() > 0, emit_chunks=True,
+                                           record_size_limit=size).records:
                     if isinstance(record, MessageIndex):
                         if bad_chunk is not None:
                             bad_chunk[1] += len(record.records)
@@ -219,7 +252,7 @@ class BagReader:
         Damage ends or skips part of the iteration; ``losses`` says what was lost."""
         topics = None if topics is None else {relative_name(t) for t in topics}
         if self._mcaps:
-            for topic, msgtype, _, stamp, data in self._stream():
+            for topic, msgtype, _, stamp, data in self._stream(start_ns):
                 if (topics is None or topic in topics) and (start_ns is None or stamp >= start_ns) \
                         and (stop_ns is None or stamp < stop_ns):
                     yield BagMessage(topic, msgtype, int(stamp), data)

@@ -5,7 +5,8 @@ per second of 8-camera capture, 840 MB, against 0.6 s for the disk itself), and 
 chunk CRCs as 0. Here the small records (header, schemas, channels, indexes, summary, footer) are
 the ``mcap`` library's own record classes; only the chunk and message headers are packed here,
 so that a frame's bytes go from the subscriber's buffer to the file in one ``writev`` with no
-copy. Messages are grouped into chunks of about ``chunk_bytes``; each chunk's CRC-32 is
+copy. Messages are grouped into chunks of about ``chunk_bytes``, each chunk holding the schema and
+channel records of the channels it uses (``add_channel``); each chunk's CRC-32 is
 computed over its uncompressed records as the MCAP spec defines (by ISA-L: 18 GB/s here against
 zlib's 3.6), and readers check it.
 
@@ -68,6 +69,8 @@ class McapFile:
         self._channels: list[Channel] = []
         self._chunk_indexes: list[ChunkIndex] = []
         self._counts: dict[int, int] = {}
+        self._declared_schemas: set[int] = set()      # schema / channel records in the chunk being built
+        self._declared_channels: set[int] = set()
         self._pending: list[tuple[int, int, bytes]] = []        # (channel, log time, data)
         self._pending_bytes = 0
         self.start_ns: int | None = None
@@ -99,24 +102,41 @@ class McapFile:
         self.size += total
 
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
-        """The id of the schema ``name``, written on first use."""
+        """The id of the schema ``name`` (written into the chunk of its first message)."""
         for known in self._schemas:
             if known.name == name:
                 return known.id
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas.append(schema)
-        self._write([_record_bytes(schema)])
         return schema.id
 
     def add_channel(self, topic: str, schema_id: int, metadata: dict[str, str],
                     message_encoding: str = 'cdr') -> int:
+        """The id of a new channel. Its record (and its schema's) goes into every chunk that
+        holds one of its messages, before the first: the reference writer (the C++ ``McapWriter``
+        that rosbag2 uses) writes them into the chunk of the channel's first message; repeating
+        them (identical records, which the spec allows) makes every chunk self-describing, so a
+        reader of a cut or damaged file (``mcap recover``, ``volcap bag recover``) knows every
+        channel of every whole chunk, even when the chunk that declared it first is lost. A
+        channel with no message is only in the summary."""
         channel = Channel(id=len(self._channels) + 1, topic=topic, message_encoding=message_encoding,
                           metadata=metadata, schema_id=schema_id)
-        self.flush()                   # a channel is declared before any chunk that uses it
         self._channels.append(channel)
         self._counts[channel.id] = 0
-        self._write([_record_bytes(channel)])
         return channel.id
+
+    def _declarations(self, channel_id: int) -> list[bytes]:
+        """The schema and channel records due before the first message of ``channel_id`` in the
+        chunk being built."""
+        if channel_id in self._declared_channels:
+            return []
+        self._declared_channels.add(channel_id)
+        channel = self._channels[channel_id - 1]
+        out = []
+        if channel.schema_id and channel.schema_id not in self._declared_schemas:
+            self._declared_schemas.add(channel.schema_id)
+            out.append(_record_bytes(self._schemas[channel.schema_id - 1]))
+        return out + [_record_bytes(channel)]
 
     def write(self, channel_id: int, log_time: int, data: bytes) -> None:
         """Queue one message (its bytes are referenced, not copied); a full chunk is written."""
@@ -134,8 +154,13 @@ class McapFile:
         if not self._pending:
             return
         pending, self._pending, self._pending_bytes = self._pending, [], 0
+        self._declared_schemas, self._declared_channels = set(), set()     # each chunk declares its own
         records, indexes, offset, crc = [], {}, 0, 0
         for channel_id, log_time, data in pending:
+            for declaration in self._declarations(channel_id):
+                records.append(declaration)
+                crc = crc32(declaration, crc)
+                offset += len(declaration)
             head = _MESSAGE_HEADER.pack(Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, 0, log_time, log_time)
             records += (head, data)
             crc = crc32(data, crc32(head, crc))

@@ -26,8 +26,8 @@ from volcap_core.sync import DEFAULT_PERIOD_NS, PeriodEstimate
 from .playback import (
     HEADER_FIRST_TYPES,
     BagPlayerConfig,
-    LateSetFilter,
     Schedule,
+    SetPacer,
     SetRestamper,
     output_topic,
     parse_counts,
@@ -113,7 +113,7 @@ class BagPlayer(Node):
         last_report = time.monotonic()
         period = PeriodEstimate()
         next_pass_ns = target = time.time_ns()
-        late = LateSetFilter(int(self.cfg.max_lag_ms * 1e6))
+        pacer = SetPacer(int(self.cfg.max_lag_ms * 1e6))
         restamper = SetRestamper()
         while not self._stop.is_set():
             # A pass that starts late keeps to the frame grid of the last (whole periods later).
@@ -128,12 +128,19 @@ class BagPlayer(Node):
                 if new_rate != rate:
                     rate, schedule = new_rate, schedule.rebase(msg.stamp_ns, time.time_ns(), new_rate)
                 target = schedule.wall_time(msg.stamp_ns)
+                half_period = int((period.period_ns or DEFAULT_PERIOD_NS) / rate) // 2
+                if msg.msgtype in HEADER_FIRST_TYPES:
+                    if pacer.new_set(target, half_period):
+                        send, late = pacer.start_set(target, time.time_ns())
+                        if late:         # sent now; the schedule goes on from here, no run of drops
+                            schedule = schedule.rebase(msg.stamp_ns, time.time_ns(), rate)
+                            target = schedule.wall_time(msg.stamp_ns)
+                            pacer.moved(target)
+                    if not pacer.send(target, time.time_ns(), half_period):
+                        continue          # left out of the subset: not waited for either
                 delay = (target - time.time_ns()) / 1e9
                 if delay > 0 and self._stop.wait(delay):
                     return
-                half_period = int((period.period_ns or DEFAULT_PERIOD_NS) / rate) // 2
-                if msg.msgtype in HEADER_FIRST_TYPES and not late.send(target, time.time_ns(), half_period):
-                    continue
                 data = msg.data
                 if self.restamp and msg.msgtype in HEADER_FIRST_TYPES:
                     data = restamp_cdr(data, restamper.stamp(msg.stamp_ns, target,
@@ -142,8 +149,10 @@ class BagPlayer(Node):
                 self.published += 1
                 if time.monotonic() - last_report > 1.0:
                     last_report = time.monotonic()
-                    self.diagnostics.report('ok', 'playing', published=self.published,
-                                            late_sets_dropped=late.dropped_sets, lag_ms=f'{(time.time_ns() - target) / 1e6:.1f}',
+                    self.diagnostics.report('ok' if pacer.every == 1 else 'warn', pacer.status(),
+                                            published=self.published, sets=pacer.sets, sets_sent=pacer.sent_sets,
+                                            sets_left_out=pacer.left_out, send_every=pacer.every,
+                                            sets_rebased=pacer.rebased, lag_ms=f'{(time.time_ns() - target) / 1e6:.1f}',
                                             bag_time=f'{(msg.stamp_ns - reader.start_ns) / 1e9:.3f}')
             if not self.loop:
                 break

@@ -64,9 +64,10 @@ class BagPlayerConfig:
                                               read_only=True)
     restamp: bool = setting(False, 'rewrite header stamps to the wall-clock time each message is scheduled at',
                             read_only=True)
-    max_lag_ms: float = setting(0.0, 'drop a whole frame set whose time came more than this long ago, as a camera '
-                                'that cannot send drops frames rather than sending them late (0: never drop)',
-                                0.0, 60_000.0, read_only=True)
+    max_lag_ms: float = setting(0.0, 'stand in for live cameras that cannot keep up: when the sets sent start more '
+                                'than a quarter of this late, send an even subset of them (one in N, N adapting); '
+                                'a set later than this is sent at once and the schedule moves on (0: every set, '
+                                'however late)', 0.0, 60_000.0, read_only=True)
     exit_when_done: bool = setting(True, 'shut the node down when playback ends (exit code 1 if the bag was '
                                          'unreadable)', read_only=True)
     wait_for_subscribers: float = setting(0.0, 'wait up to this many seconds for every played topic to have a '
@@ -116,22 +117,75 @@ class SetRestamper:
         return self._anchor[1] + stamp_ns - self._anchor[0]
 
 
-class LateSetFilter:
-    """Which messages a player that must stay real time sends: a frame set (the messages whose
-    scheduled times lie within half a frame period of the set's first) is dropped whole when its
-    first message is already ``max_lag_ns`` late, never split."""
+class SetPacer:
+    """Which frame sets a player that stands in for live cameras sends, and when: it degrades as a
+    camera that cannot keep up does, sending an even subset at a steady rate instead of bursts
+    and silences.
 
-    def __init__(self, max_lag_ns: int):
+    A frame set is the messages whose scheduled times lie within half a frame period of the set's
+    first; a set is sent or left out whole, never split. While the sets it sends start more than
+    a quarter of ``max_lag_ns`` late, the player sends one set in ``every`` (raised by one each
+    time; sets ``index % every == 0``, evenly spaced). While they start on time for
+    ``CALM_SETS`` sent sets, ``every`` falls by one. A set that starts more than ``max_lag_ns``
+    late is sent at once and the schedule moves on from it (``rebase``): what a camera would send
+    next, with no run of dropped sets behind it. ``max_lag_ns`` 0: every set, as scheduled."""
+
+    CALM_SETS = 30
+
+    def __init__(self, max_lag_ns: int, max_every: int = 30):
         self.max_lag_ns = max_lag_ns
-        self.dropped_sets = 0
+        self.max_every = max_every
+        self.every = 1
+        self.sets = 0              # frame sets seen
+        self.sent_sets = 0
+        self.left_out = 0          # not in the subset
+        self.rebased = 0           # sent late: the schedule moved on
         self._set_start: int | None = None
-        self._dropping = False
+        self._send = True
+        self._calm = 0
+
+    def new_set(self, target_ns: int, half_period_ns: int) -> bool:
+        """Whether a message scheduled at ``target_ns`` starts a new frame set."""
+        return self._set_start is None or abs(target_ns - self._set_start) > half_period_ns
+
+    def start_set(self, target_ns: int, now_ns: int) -> tuple[bool, bool]:
+        """(send this set, move the schedule to now first) for a set that starts at ``target_ns``."""
+        self._set_start = target_ns
+        index, self.sets = self.sets, self.sets + 1
+        if self.max_lag_ns <= 0:
+            self._send = True
+            self.sent_sets += 1
+            return True, False
+        self._send = index % self.every == 0
+        if not self._send:
+            self.left_out += 1
+            return False, False
+        lag = now_ns - target_ns
+        if lag > self.max_lag_ns // 4:
+            self.every = min(self.every + 1, self.max_every)
+            self._calm = 0
+        else:
+            self._calm += 1
+            if self._calm >= self.CALM_SETS and self.every > 1:
+                self.every -= 1
+                self._calm = 0
+        self.sent_sets += 1
+        late = lag > self.max_lag_ns
+        self.rebased += late
+        return True, late
+
+    def moved(self, target_ns: int) -> None:
+        """The current set was rescheduled to ``target_ns`` (the schedule moved on)."""
+        self._set_start = target_ns
 
     def send(self, target_ns: int, now_ns: int, half_period_ns: int) -> bool:
-        if self.max_lag_ns <= 0:
-            return True
-        if self._set_start is None or abs(target_ns - self._set_start) > half_period_ns:
-            self._set_start = target_ns
-            self._dropping = now_ns - target_ns > self.max_lag_ns
-            self.dropped_sets += self._dropping
-        return not self._dropping
+        """Whether a message of the current set goes out (starting a set when it is a new one)."""
+        if self.new_set(target_ns, half_period_ns):
+            return self.start_set(target_ns, now_ns)[0]
+        return self._send
+
+    def status(self) -> str:
+        if self.every == 1:
+            return 'playing every frame set'
+        return (f'playing one frame set in {self.every} (evenly spaced: the player cannot send every set in time); '
+                f'{self.left_out} of {self.sets} sets left out so far')
