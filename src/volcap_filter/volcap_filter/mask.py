@@ -180,17 +180,26 @@ def clean_mask(fg: np.ndarray, min_area_frac: float, seeds: np.ndarray | None = 
     """Despeckle a raw foreground decision: open, drop blobs smaller than ``min_area_frac`` of the
     image (and, given ``seeds``, blobs containing no seed pixel), fill enclosed holes."""
     m = cv2.morphologyEx(fg.view(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    out = np.zeros(fg.shape, bool)
+    # The rest works on the box around what the opening left (the subject, not the frame: 8.6 ->
+    # ~3 ms a 1280x720 frame). Outside it all is background, connected to the image border, so
+    # flooding from the box's border finds the same holes as flooding from the image's.
+    x, y, w, h = cv2.boundingRect(m)
+    if w == 0 or h == 0:
+        return out
+    box = (slice(y, y + h), slice(x, x + w))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(m[box], connectivity=8)
     keep = stats[:, cv2.CC_STAT_AREA] >= min_area_frac * fg.size
     keep[0] = False
     if seeds is not None:
         touched = np.zeros(n, bool)
-        touched[labels[seeds]] = True
+        touched[labels[seeds[box]]] = True
         keep &= touched
-    # Holes are the background that a flood from the image border does not reach.
+    # Holes are the background that a flood from the border does not reach.
     padded = cv2.copyMakeBorder(keep[labels].view(np.uint8), 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     cv2.floodFill(padded, None, (0, 0), 2)
-    return padded[1:-1, 1:-1] != 2
+    out[box] = padded[1:-1, 1:-1] != 2
+    return out
 
 
 def chroma_key_mask(rgb: np.ndarray, key_rgb: tuple[int, int, int] = (0, 177, 64), threshold: float = 40.0,

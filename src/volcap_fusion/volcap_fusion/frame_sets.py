@@ -2,6 +2,7 @@
 are missing or unusable (the tsdf_fusion node's decisions, without ROS)."""
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -55,20 +56,30 @@ class FrameSetViews:
 
 
 def frame_set_views(stamp_ns: int, cameras: list[str], parts: dict[str, Any],
-                    to_view: Callable[[str, Any], CameraView], min_cameras: int) -> FrameSetViews:
+                    to_view: Callable[[str, Any], CameraView], min_cameras: int,
+                    pool: Executor | None = None) -> FrameSetViews:
     """``parts[camera]`` is what ``to_view`` turns into a CameraView (absent or None: the camera
     missed the set). A camera whose conversion fails is left out with the reason; a set with
-    fewer than ``min_cameras`` views is skipped."""
+    fewer than ``min_cameras`` views is skipped. ``pool``: convert the cameras in its threads
+    (decoding the wire's PNG and JPEG releases the GIL)."""
     views, problems, absent = [], {}, []
-    for cam in cameras:
-        part = parts.get(cam)
-        if part is None:
-            absent.append(cam)
-            continue
+
+    def convert(cam):
         try:
-            views.append(to_view(cam, part))
+            return to_view(cam, parts[cam]), None
         except (ValueError, KeyError) as e:
-            problems[cam] = str(e)
+            return None, str(e)
+    present = []
+    for cam in cameras:
+        if parts.get(cam) is None:
+            absent.append(cam)
+        else:
+            present.append(cam)
+    for cam, (view, problem) in zip(present, (pool.map if pool is not None else map)(convert, present)):
+        if problem is not None:
+            problems[cam] = problem
+        else:
+            views.append(view)
     missing = sorted(set(absent) | set(problems))
     skipped = ''
     if len(views) < min_cameras:
