@@ -135,7 +135,7 @@ def one_core_pipeline(bag: str, calibration: str, frames: int) -> dict:
     summary['stages_ms_median'] = {k: float(np.median(v)) for k, v in out['stages_ms'].items()}
     for key in ('wire_bytes', 'old_bytes', 'raw_bytes'):
         b = float(np.mean(out[key]))
-        summary[key.replace('_bytes', '')] = {'kbytes_per_frame': b / 1000, 'mbit_s_at_30fps': b * 8 * 30 / 1e6,
+        summary['bytes_' + key.replace('_bytes', '')] = {'kbytes_per_frame': b / 1000, 'mbit_s_at_30fps': b * 8 * 30 / 1e6,
                                               'mbit_s_8_cameras': b * 8 * 30 * 8 / 1e6}
     return summary
 

@@ -113,3 +113,9 @@ def test_calm_steps_down_only_with_cpu_headroom():
     assert ctrl.step(5.0, trouble=False, cpu_busy=0.7) is None      # 0.7 * 3/2 > 0.85
     rule = ctrl.step(8.0, trouble=False, cpu_busy=0.5)
     assert rule is not None and rule.every == 2
+    for t in (9.0, 10.0, 11.0):                       # up to 1/8 in trouble
+        ctrl.step(t, trouble=True)
+    assert ctrl.rule.every == 8
+    assert ctrl.step(12.0, trouble=False, cpu_busy=0.2) is None          # calm from now
+    assert ctrl.step(14.0, trouble=False, cpu_busy=0.2).every == 5      # far from the limit: a third fewer
+    assert ctrl.step(17.0, trouble=False, cpu_busy=0.6).every == 4      # 0.6 * 5/3 > 0.85: one fewer

@@ -113,3 +113,4 @@ def test_bad_wire_messages_are_clear_errors():
     with pytest.raises(MessageConversionError, match='is 4x4 pixels'):
         wire.place_region(np.zeros((3, 3), np.uint16), wire.Region(0, 0, 4, 4), MODEL)
     assert wire.foreground_region(np.zeros((5, 5), bool)) is None
+

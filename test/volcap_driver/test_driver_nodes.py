@@ -242,8 +242,9 @@ def test_a_player_that_cannot_keep_up_sends_an_even_subset():
         else:
             assert not pacer.send(target + 12_000_000, now, half)
     gaps = [b - a for a, b in zip(kept, kept[1:])]
-    assert pacer.every in (2, 3) and set(gaps[-20:]) <= {2, 3}        # one in 2-3, steady
-    assert max(gaps) <= 4 and len(kept) > 300 / 4                       # never a silence
+    # what the player can send (33 / 50 ms: 2 sets in 3), in gaps of 1-3 sets, never a silence
+    assert pacer.every in (2, 3) and max(gaps) <= 3
+    assert 0.5 < len(kept) / 300 < 0.8
     assert 'one frame set in' in pacer.status() and pacer.left_out == 300 - len(kept)
     every = pacer.every
     for k in range(300, 300 + 3 * SetPacer.CALM_SETS * every):   # on time again: back to every set

@@ -176,8 +176,8 @@ class AdmissionController:
     control period returns a new rule when the decimation or the grid should change: ``trouble``
     (a stage dropped admitted frames, a frame set was fused incomplete, latency over budget)
     multiplies ``every`` by 1.5 (at most once per ``hold_s``); after ``calm_s`` without trouble,
-    ``every`` steps down by one while the measured CPU use, scaled to the higher rate, stays
-    under ``headroom``."""
+    ``every`` falls by a third, or else by one, as far as the measured CPU use, scaled to the
+    higher rate, stays under ``headroom``."""
 
     def __init__(self, min_every: int = 1, max_every: int = 60, hold_s: float = 2.0, calm_s: float = 4.0,
                  headroom: float = 0.85, lead_ns: int = 300_000_000):
@@ -204,8 +204,12 @@ class AdmissionController:
         if self._calm_since_s is None:
             self._calm_since_s = now_s
         calm = now_s - max(self._calm_since_s, self._changed_s) >= self.calm_s
-        if calm and every > self.min_every and (cpu_busy is None or cpu_busy * every / (every - 1) < self.headroom):
-            return every - 1
+        if calm and every > self.min_every:
+            # a third fewer while the CPU would have room even so (a start-up's trouble can leave
+            # 1/11 on a host that does 1/2: one step per calm period took half a minute back)
+            for lower in (max(self.min_every, every * 2 // 3), every - 1):
+                if lower < every and (cpu_busy is None or cpu_busy * every / lower < self.headroom):
+                    return lower
         return every
 
     def step(self, now_s: float, trouble: bool, cpu_busy: float | None = None) -> AdmissionRule | None:

@@ -124,13 +124,15 @@ class SetPacer:
 
     A frame set is the messages whose scheduled times lie within half a frame period of the set's
     first; a set is sent or left out whole, never split. While the sets it sends start more than
-    a quarter of ``max_lag_ns`` late, the player sends one set in ``every`` (raised by one each
-    time; sets ``index % every == 0``, evenly spaced). While they start on time for
+    a quarter of ``max_lag_ns`` late (``BEHIND_SETS`` in a row: a scheduling hiccup is not a
+    load), the player sends one set in ``every`` (raised by one each time; sets
+    ``index % every == 0``, evenly spaced). While they start on time for
     ``CALM_SETS`` sent sets, ``every`` falls by one. A set that starts more than ``max_lag_ns``
     late is sent at once and the schedule moves on from it (``rebase``): what a camera would send
     next, with no run of dropped sets behind it. ``max_lag_ns`` 0: every set, as scheduled."""
 
     CALM_SETS = 30
+    BEHIND_SETS = 3
 
     def __init__(self, max_lag_ns: int, max_every: int = 30):
         self.max_lag_ns = max_lag_ns
@@ -143,6 +145,7 @@ class SetPacer:
         self._set_start: int | None = None
         self._send = True
         self._calm = 0
+        self._behind = 0
 
     def new_set(self, target_ns: int, half_period_ns: int) -> bool:
         """Whether a message scheduled at ``target_ns`` starts a new frame set."""
@@ -162,9 +165,13 @@ class SetPacer:
             return False, False
         lag = now_ns - target_ns
         if lag > self.max_lag_ns // 4:
-            self.every = min(self.every + 1, self.max_every)
+            self._behind += 1
             self._calm = 0
+            if self._behind >= self.BEHIND_SETS:    # sustained, not one scheduling hiccup
+                self.every = min(self.every + 1, self.max_every)
+                self._behind = 0
         else:
+            self._behind = 0
             self._calm += 1
             if self._calm >= self.CALM_SETS and self.every > 1:
                 self.every -= 1

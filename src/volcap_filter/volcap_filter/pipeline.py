@@ -50,8 +50,19 @@ class CleanResult:
     mask: np.ndarray | None      # (H, W) bool foreground at colour resolution (None: no mask)
     flying: np.ndarray           # (Hd, Wd) bool raw pixels the flying-pixel filter removed
     registered: Registered       # where each raw pixel went (for scoring against raw-grid truth)
-    color: np.ndarray            # (h, w, 3) uint8 colour at output size
+    source_color: np.ndarray     # (H, W, 3) uint8 colour the depth was cleaned with
     timings_ms: dict[str, float]
+    _color: np.ndarray | None = None
+
+    @property
+    def color(self) -> np.ndarray:
+        """(h, w, 3) uint8 colour at the output size, made when first asked for (the point cloud
+        asks; the wire and fusion use the source colour: 1 ms a frame not spent)."""
+        if self._color is None:
+            h, w = self.depth.shape
+            src = self.source_color
+            self._color = src if src.shape[:2] == (h, w) else cv2.resize(src, (w, h), interpolation=cv2.INTER_AREA)
+        return self._color
 
     def reached_output(self, tolerance: float = 0.02) -> np.ndarray:
         """(Hd, Wd) bool raw pixels whose projection lands on a kept output pixel at their own
@@ -104,7 +115,6 @@ class DepthCleaner:
         t['register'] = _ms(t0)
         t0 = time.perf_counter()
         out = self.output_model
-        color_out = cv2.resize(color, (out.width, out.height), interpolation=cv2.INTER_AREA)
         mask = self._mask(color, reg.depth)
         keep = reg.depth > 0
         if mask is not None:
@@ -115,7 +125,7 @@ class DepthCleaner:
         t['mask'] = _ms(t0)
         if cfg.temporal_alpha > 0:
             clean = self._smooth(clean)
-        return CleanResult(clean, mask, flying, reg, color_out, t)
+        return CleanResult(clean, mask, flying, reg, color, t)
 
     def points(self, result: CleanResult) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) float32 points in the colour optical frame and their (N, 3) uint8 colours."""

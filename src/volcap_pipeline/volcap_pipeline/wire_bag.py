@@ -101,13 +101,7 @@ def record_wire(cfg: WireBagConfig) -> WireBagReport:
         for c in cameras:
             for stream in WIRE_STREAMS:
                 writer.add_topic(topics.camera_topic(c, stream), _TYPES[stream])
-        first = True
         for fs in frame_sets(cfg.bag, phases=(topics.CLEAN_PLATE, topics.CAPTURE), cameras=cameras):
-            if first:
-                if rig_text is not None:
-                    writer.write(topics.RIG, String(data=rig_text), fs.stamp_ns)
-                writer.write(topics.CALIBRATION, String(data=calibration_text), fs.stamp_ns)
-                first = False
             wrote = False
             for name, frame in fs.cameras.items():
                 pipeline, correction = pipelines[name]
@@ -117,6 +111,12 @@ def record_wire(cfg: WireBagConfig) -> WireBagReport:
                     raise BadInput(f'{name}: {failed[0]}')
                 if cleaned is None:
                     continue
+                if count == 0 and not wrote:
+                    # stamped with the first set sent: the bag starts where the wire does (a
+                    # looping player would otherwise wait out the clean-plate seconds each pass)
+                    if rig_text is not None:
+                        writer.write(topics.RIG, String(data=rig_text), fs.stamp_ns)
+                    writer.write(topics.CALIBRATION, String(data=calibration_text), fs.stamp_ns)
                 pipeline.correction = correction
                 try:
                     frame_out = pipeline.wire(cleaned.result.depth, cleaned.model, frame.color, frame.color_model,
