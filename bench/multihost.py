@@ -2,6 +2,7 @@
 veth link on this machine, Fast DDS over UDP between them (shared memory cannot cross hosts).
 
     .venv/bin/python bench/multihost.py [--seconds 10] [--rates 5,10,30]     (as root)
+    .venv/bin/python bench/multihost.py --wire WIREBAG [--rates 30]          (the compact wire)
 
 What crosses the link is what the capture host's depth filters and colour correctors send the
 fusion host, 8 cameras: ``cam<i>/color/image_corrected`` (rgb8 1280x720) and
@@ -91,6 +92,47 @@ def ros_env(transport: str) -> dict:
 
 
 # children --------------------------------------------------------------------------------------
+def wire_publisher(seconds: float, fps: float, start_at: float, wire_bag: str) -> dict:
+    """Child on the capture host: 8 camera pipelines' compact wire, the recorded wire bag's frame
+    sets in turn with fresh stamps (CDR patched, as the bag player restamps)."""
+    import rclpy
+    from sensor_msgs.msg import CameraInfo, CompressedImage
+
+    from volcap_core import qos, transport, wire
+    from volcap_core.bag_reader import BagReader
+    from volcap_driver.playback import restamp_cdr
+    transport.configure()
+    rclpy.init()
+    node = rclpy.create_node('capture_host')
+    kinds = {wire.WIRE_DEPTH: CompressedImage, wire.WIRE_COLOR: CompressedImage, wire.WIRE_DEPTH_INFO: CameraInfo,
+             wire.WIRE_COLOR_INFO: CameraInfo}
+    sets: dict[int, list] = {}
+    with BagReader(wire_bag) as reader:
+        for m in reader.messages([f'{c}/{t}' for c in CAMERAS for t in kinds]):
+            sets.setdefault(m.stamp_ns, []).append((m.topic, m.data))
+    frames = [sets[s] for s in sorted(sets)]
+    pubs = {f'{c}/{t}': node.create_publisher(k, f'{c}/{t}', qos.DRIVER) for c in CAMERAS for t, k in kinds.items()}
+    while time.time() < start_at:
+        time.sleep(0.01)
+    sent, sent_bytes, k, t0 = 0, 0, 0, time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        delay = t0 + k / fps - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        stamp = time.time_ns()
+        for topic, data in frames[k % len(frames)]:
+            data = restamp_cdr(data, stamp)
+            pubs[topic].publish(data)
+            sent_bytes += len(data)
+        sent += 1
+        k += 1
+    elapsed = time.monotonic() - t0
+    time.sleep(2.0)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return {'sent_sets': sent, 'sent_fps': sent / elapsed, 'payload_mbit_s': sent_bytes * 8 / elapsed / 1e6}
+
+
 def publisher(seconds: float, fps: float, start_at: float) -> dict:
     """Child on the capture host: the filters' and correctors' output of 8 cameras."""
     import rclpy
@@ -133,21 +175,25 @@ def publisher(seconds: float, fps: float, start_at: float) -> dict:
     return {'sent_sets': sent, 'sent_fps': sent / elapsed}
 
 
-def subscriber(seconds: float) -> dict:
-    """Child on the fusion host: tsdf_fusion's subscriptions; (receive ns, stamp ns) per image."""
+def subscriber(seconds: float, wire_bag: str = '') -> dict:
+    """Child on the fusion host: tsdf_fusion's subscriptions (its wire's with ``wire_bag``);
+    (receive ns, stamp ns) per image."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import Image
+    from sensor_msgs.msg import CompressedImage, Image
 
-    from volcap_core import qos, topics, transport
+    from volcap_core import qos, topics, transport, wire
     from volcap_core.cdr import cdr_stamp_ns
     transport.configure()
     rclpy.init()
     node = rclpy.create_node('fusion_host')
     arrivals = {f'{c}/{s}': [] for c in CAMERAS for s in ('depth', 'color')}
+    streams = ((('depth', wire.WIRE_DEPTH), ('color', wire.WIRE_COLOR)) if wire_bag
+               else (('depth', topics.DEPTH_CLEAN), ('color', topics.COLOR_CORRECTED)))
+    kind = CompressedImage if wire_bag else Image
     for c in CAMERAS:
-        for stream, topic in (('depth', topics.DEPTH_CLEAN), ('color', topics.COLOR_CORRECTED)):
-            node.create_subscription(Image, f'{c}/{topic}', lambda data, key=f'{c}/{stream}': arrivals[key].append(
+        for stream, topic in streams:
+            node.create_subscription(kind, f'{c}/{topic}', lambda data, key=f'{c}/{stream}': arrivals[key].append(
                 (time.time_ns(), cdr_stamp_ns(data))), qos.CAMERA, raw=True)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -212,13 +258,22 @@ def udp_limit(seconds: float = 3.0) -> float:
     return got['bytes'] / got['seconds'] / 1e9 if got['seconds'] else 0.0
 
 
-def dds_run(transport: str, fps: float, seconds: float, events=None) -> dict:
+def link_bytes() -> int:
+    """Bytes the capture host's end of the link has sent (the kernel's counter)."""
+    ns, iface, _ = HOSTS['capture']
+    return int(sh('ip', 'netns', 'exec', ns, 'cat', f'/sys/class/net/{iface}/statistics/tx_bytes').stdout)
+
+
+def dds_run(transport: str, fps: float, seconds: float, events=None, wire_bag: str = '') -> dict:
     """One run: subscriber on the fusion host, publisher on the capture host; ``events``:
-    [(seconds after the start, callable)] done meanwhile (link down/up)."""
+    [(seconds after the start, callable)] done meanwhile (link down/up). ``wire_bag``: the
+    camera pipelines' compact wire (recorded by ``volcap wire``) instead of full-size images."""
     settle = 6.0               # discovery across the link before the first frame
-    sub = child('fusion', 'sub', transport, seconds=seconds + settle + 6)
+    extra = {'wire_bag': wire_bag} if wire_bag else {}
+    sub = child('fusion', 'sub', transport, seconds=seconds + settle + 6, **extra)
     start_at = time.time() + settle
-    pub = child('capture', 'pub', transport, seconds=seconds, fps=fps, start_at=start_at)
+    before = link_bytes()
+    pub = child('capture', 'pub', transport, seconds=seconds, fps=fps, start_at=start_at, **extra)
     marks = {}
     for at, action in events or []:
         delay = start_at + at - time.time()
@@ -228,6 +283,8 @@ def dds_run(transport: str, fps: float, seconds: float, events=None) -> dict:
         action()
     sent = result_of(pub, seconds + settle + 60)
     arrivals = result_of(sub, seconds + settle + 60)
+    # over the whole run (discovery, the 2 s of retransmissions after): a bound on the stream's rate
+    sent['link_mbit_s'] = (link_bytes() - before) * 8 / seconds / 1e6
     return summarise(sent, arrivals, marks)
 
 
@@ -273,7 +330,8 @@ def figure(result: dict, path: Path) -> None:
     ax.bar(x + 0.2, [100 * r['delivered_median'] for r in runs], 0.4, label='median stream')
     ax.set_xticks(x, labels, fontsize=7)
     ax.set_ylabel('frame sets delivered (%)')
-    ax.set_title(f'8 cameras (26 MB/set) capture host -> fusion host over UDP; raw UDP limit '
+    what = 'compact wire' if result.get('wire_bag') else '26 MB/set'
+    ax.set_title(f'8 cameras ({what}) capture host -> fusion host over UDP; raw UDP limit '
                  f'{result["udp_limit_gb_per_s"]:.2f} GB/s', fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -285,13 +343,17 @@ def main() -> int:
     ap.add_argument('--seconds', type=float, default=10.0)
     ap.add_argument('--rates', default='5,10,30', help='offered frame sets per second')
     ap.add_argument('--out', default=str(REPO / 'bench_out'))
+    ap.add_argument('--wire', dest='wire_bag', default='',
+                    help='a wire bag (volcap wire): send the camera pipelines\' compact wire instead of full-size '
+                         'images (multi-host profile, each rate, delivered share and Mbit/s on the link)')
     ap.add_argument('--child', help=argparse.SUPPRESS)
     ap.add_argument('--fps', type=float, help=argparse.SUPPRESS)
     ap.add_argument('--start-at', type=float, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        result = {'pub': lambda: publisher(args.seconds, args.fps, args.start_at),
-                  'sub': lambda: subscriber(args.seconds),
+        result = {'pub': lambda: (wire_publisher(args.seconds, args.fps, args.start_at, args.wire_bag)
+                                  if args.wire_bag else publisher(args.seconds, args.fps, args.start_at)),
+                  'sub': lambda: subscriber(args.seconds, args.wire_bag),
                   'udp-sink': lambda: udp_sink(5999, args.seconds),
                   'udp-source': lambda: udp_source(HOSTS['fusion'][2], 5999, args.seconds)}[args.child]()
         print(json.dumps(result))
@@ -322,6 +384,15 @@ def main() -> int:
                   f'{" 1 % loss" if r.get("loss") else ""}: delivered worst {100 * r["delivered_worst"]:.1f} %, '
                   f'median {100 * r["delivered_median"]:.1f} %, latency p50 {r["latency_ms_p50"] or 0:.0f} ms '
                   f'p95 {r["latency_ms_p95"] or 0:.0f} ms{extra}', flush=True)
+        if args.wire_bag:
+            for fps in rates:
+                runs.append({'profile': 'multihost', 'wire': True, 'offered_fps': fps,
+                             **dds_run('multihost', fps, args.seconds, wire_bag=args.wire_bag)})
+                report(runs[-1])
+                print(f'  wire: {runs[-1]["payload_mbit_s"]:.0f} Mbit/s of messages, {runs[-1]["link_mbit_s"]:.0f} '
+                      'Mbit/s on the link (whole run)', flush=True)
+            return _write(args, {'udp_limit_gb_per_s': limit, 'wire_bag': args.wire_bag, 'runs': runs},
+                          'multihost_wire')
         for profile in ('single', 'multihost'):
             for fps in rates:
                 runs.append({'profile': profile, 'offered_fps': fps, **dds_run(profile, fps, args.seconds)})
@@ -346,12 +417,15 @@ def main() -> int:
         remove_hosts()
         for k, v in limits.items():
             Path(f'/proc/sys/net/core/{k}').write_text(v)
-    result = {'udp_limit_gb_per_s': limit, 'runs': runs}
+    return _write(args, {'udp_limit_gb_per_s': limit, 'runs': runs}, 'multihost')
+
+
+def _write(args, result: dict, name: str) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / 'multihost.json').write_text(json.dumps(result, indent=2))
-    figure(result, out / 'multihost.png')
-    print(f'wrote {out / "multihost.json"} and multihost.png')
+    (out / f'{name}.json').write_text(json.dumps(result, indent=2))
+    figure(result, out / f'{name}.png')
+    print(f'wrote {out / f"{name}.json"} and {name}.png')
     return 0
 
 

@@ -64,15 +64,17 @@ def test_launch_starts_the_rig_graph(launch_file):
     params = [n.kwargs['parameters'][0] for n in nodes]
     assert params[0] == {'output': '/rig/calibration.yaml'}
     assert params[1] == {'output_scale': 0.5}      # live: cleaned depth at half the colour size
-    assert params[-2] == {'voxel_size': 0.01, 'output_dir': '/takes/1', 'device': 'auto', 'frame_timeout_ms': 600.0}
+    assert params[-2] == {'voxel_size': 0.01, 'output_dir': '/takes/1', 'device': 'auto', 'frame_timeout_ms': 600.0,
+                          'input': 'wire'}       # the camera pipelines' compact wire
     assert params[-1] == {'cameras': ['cam0', 'cam1', 'cam2']}
     offline = [n.kwargs['parameters'][0] for n in _launched(launch_file, cameras='3', live='false')]
     assert offline[1] == {'output_scale': 1.0}     # every frame set, at the colour size, 4 mm voxels
-    assert offline[-1] == {'voxel_size': 0.004, 'output_dir': '', 'device': 'auto'}
+    assert offline[-1] == {'voxel_size': 0.004, 'output_dir': '', 'device': 'auto', 'input': 'wire'}
     split = _launched(launch_file, cameras='3', split_stages='true')
     assert [(n.kwargs['executable'], n.kwargs['namespace']) for n in split[1:7]] == \
         [('depth_filter', f'cam{i}') for i in range(3)] + [('color_corrector', f'cam{i}') for i in range(3)]
     assert split[1].kwargs['parameters'] == [{'output_scale': 0.5}] and split[4].kwargs['parameters'] == [{}]
+    assert split[-2].kwargs['parameters'][0]['input'] == 'full'     # the separate stages send full-size images
 
 
 def test_launch_replays_a_bag_as_the_frame_source(launch_file):

@@ -2,7 +2,8 @@
 corrected colour (the studio's ideal views of a person) and a calibration with a studio frame go
 in; the compressed GLB comes out on volcap/mesh/glb, and this process (not the node's) decodes it
 with meshoptimizer and finds the mesh the node wrote, within the quantisation bounds, upright in
-the studio frame; its size, bitrate and encode time are on the diagnostics. `volcap view --live`
+the studio frame; its size, bitrate and encode time are on the diagnostics (input:=full: the
+separate stages' full-size topics; the wire is test_wire_fusion's and test_vendor_drivers'). `volcap view --live`
 shows it in Chromium."""
 import subprocess
 import sys
@@ -58,7 +59,7 @@ def test_glb_stream_decodes_in_another_process_within_the_bounds(ros_context, pr
     views = ring_views()
     out = tmp_path / 'frames'
     procs.append(start_node('volcap_fusion', 'tsdf_fusion', {
-        'voxel_size': VOXEL, 'output_dir': str(out), 'reliable': True, 'frame_timeout_ms': 5000.0,
+        'voxel_size': VOXEL, 'output_dir': str(out), 'reliable': True, 'frame_timeout_ms': 5000.0, 'input': 'full',
         'max_triangles': 20_000}))
     probe = probe_factory([('/' + topics.MESH_GLB, Marker, qos.EVERY_FRAME),
                            ('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
@@ -147,7 +148,7 @@ def test_faults_bad_calibration_silent_camera_and_full_disk(ros_context, procs, 
     views = ring_views()
     out = small_disk(3_000_000) / 'frames'
     procs.append(start_node('volcap_fusion', 'tsdf_fusion', {
-        'voxel_size': VOXEL, 'output_dir': str(out), 'reliable': True, 'frame_timeout_ms': 300.0,
+        'voxel_size': VOXEL, 'output_dir': str(out), 'reliable': True, 'frame_timeout_ms': 300.0, 'input': 'full',
         'silent_periods': 3.0, 'encoding': 'raw', 'max_triangles': 0}))
     probe = probe_factory([('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     node = probe.node
