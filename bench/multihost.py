@@ -343,7 +343,7 @@ def main() -> int:
     ap.add_argument('--seconds', type=float, default=10.0)
     ap.add_argument('--rates', default='5,10,30', help='offered frame sets per second')
     ap.add_argument('--out', default=str(REPO / 'bench_out'))
-    ap.add_argument('--wire', dest='wire_bag', default='',
+    ap.add_argument('--wire', '--wire-bag', dest='wire_bag', default='',
                     help='a wire bag (volcap wire): send the camera pipelines\' compact wire instead of full-size '
                          'images (multi-host profile, each rate, delivered share and Mbit/s on the link)')
     ap.add_argument('--child', help=argparse.SUPPRESS)

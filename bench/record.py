@@ -18,7 +18,8 @@ mid-take leaves.
    ``metadata.yaml``, the messages ``volcap bag recover`` restores against those the recorder
    wrote (its diagnostics count).
 
-Writes bench_out/record.json and record.png.
+With ``--wire WIREBAG`` only: the recorder on 8 cameras' compact wire at 30 fps (messages
+recorded against published). Writes bench_out/record.json and record.png (record_wire.json).
 """
 from __future__ import annotations
 
@@ -198,6 +199,46 @@ def record_live(out: Path, frames: int, kill_after: float | None = None, split_b
             'files': len(list(out.glob('*.mcap')))}
 
 
+def record_wire(out: Path, wire_bag: str, seconds: float) -> dict:
+    """The recorder node recording 8 camera pipelines' compact wire at 30 fps (the recorded wire
+    bag's sets with fresh stamps, sent by bench/multihost.py's capture-host publisher on this
+    host): messages recorded against published."""
+    from volcap_bringup.processes import start_node
+    from volcap_core import wire
+    from volcap_core.transport import PROFILE
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', ROS_DOMAIN_ID=DOMAIN,
+               FASTRTPS_DEFAULT_PROFILES_FILE=str(PROFILE))
+    shutil.rmtree(out, ignore_errors=True)
+    topics = [f'/{cam}/{t}' for cam in CAMERAS for t in (wire.WIRE_DEPTH, wire.WIRE_COLOR, wire.WIRE_DEPTH_INFO,
+                                                          wire.WIRE_COLOR_INFO)]
+    recorder = start_node('volcap_driver', 'recorder', {'out': str(out), 'topics': topics, 'discovery_period': 0.1},
+                          env=env)
+    try:
+        time.sleep(3.0)           # the recorder subscribed before the first set (volatile topics)
+        cpu0 = cpu_seconds(recorder.pid)
+        pub = subprocess.run([sys.executable, str(REPO / 'bench' / 'multihost.py'), '--child', 'pub',
+                              f'--wire-bag={wire_bag}', f'--seconds={seconds}', f'--fps={FPS}',
+                              f'--start-at={time.time() + 2.0}'], env=env, capture_output=True, text=True,
+                             timeout=seconds + 120)
+        published = json.loads(pub.stdout.strip().splitlines()[-1])
+        cpu = cpu_seconds(recorder.pid) - cpu0
+        recorder.send_signal(signal.SIGINT)
+        recorder.wait(60)
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+            recorder.wait()
+    from volcap_core.bag_reader import BagReader
+    with BagReader(out) as bag:
+        counts = bag.topic_counts
+        readable = bag.verify()
+    expected = published['sent_sets'] * len(topics)
+    return {'published_sets': published['sent_sets'], 'publish_fps': published['sent_fps'],
+            'payload_mbit_s': published['payload_mbit_s'], 'recorded': sum(counts.values()), 'expected': expected,
+            'readable': readable, 'recorded_share': sum(counts.values()) / expected,
+            'recorder_cpu_s_per_capture_s': cpu / (published['sent_sets'] / FPS)}
+
+
 def kill_and_recover(out: Path, frames: int, kill_after: float) -> dict:
     import yaml
 
@@ -242,10 +283,20 @@ def main() -> int:
     ap.add_argument('--seconds', type=int, default=4, help='seconds of capture per writer run')
     ap.add_argument('--rounds', type=int, default=3, help='runs of each writer (the median is reported)')
     ap.add_argument('--out', default=str(REPO / 'bench_out' / 'record'))
+    ap.add_argument('--wire', default='', help='only: the recorder on 8 cameras\' compact wire (a volcap wire bag '
+                                               'replayed at 30 fps), --seconds of it')
     args = ap.parse_args()
     os.environ.setdefault('MALLOC_MMAP_THRESHOLD_', '67108864')
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.wire:
+        r = record_wire(out / 'wire', args.wire, args.seconds)
+        print(f'recorder node, the compact wire of 8 cameras at {r["publish_fps"]:.1f} fps '
+              f'({r["payload_mbit_s"]:.0f} Mbit/s): {r["recorded"]} of {r["expected"]} messages recorded '
+              f'({100 * r["recorded_share"]:.2f} %), {r["readable"]} readable, recorder CPU '
+              f'{r["recorder_cpu_s_per_capture_s"]:.2f} s per second of capture')
+        (out / 'record_wire.json').write_text(json.dumps(r, indent=1))
+        return 0 if r['recorded'] == r['expected'] else 1
     messages = rig_messages()
     writers = time_writers(out / 'writer', args.seconds, messages, args.rounds)
     for w in writers:
