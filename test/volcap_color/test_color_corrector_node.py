@@ -28,12 +28,21 @@ def test_every_camera_of_a_replayed_bag_is_corrected(studio_bag, ros_context, pr
     cams = GroundTruth(studio_bag).rig.names
     # Reliable probes: every raw frame the player sends and every corrected one are seen.
     outputs = [(f'/{c}/{topics.COLOR_CORRECTED}', Image, qos.EVERY_FRAME) for c in cams]
-    probe = probe_factory(outputs + [(f'/{c}/{topics.COLOR_IMAGE}', Image, qos.EVERY_FRAME) for c in cams])
+    probe = probe_factory(outputs + [(f'/{c}/{topics.COLOR_IMAGE}', Image, qos.EVERY_FRAME) for c in cams]
+                          + [('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
     calib_pub = probe.node.create_publisher(String, '/' + topics.CALIBRATION, qos.LATCHED)
     calib_pub.publish(String(data=_calibration(cams, 0.25).to_yaml()))
+
+    def every_model_loaded():
+        # a corrector reports its camera's model (OK) once the latched calibration is in: on a
+        # loaded machine that took 4-8 s, longer than the bag plays
+        loaded = {s.name.rsplit(' ', 1)[-1] for _, m in probe.got['/' + topics.DIAGNOSTICS] for s in m.status
+                  if 'colour corrector' in s.name and 'corrected with' in s.message}
+        return loaded >= set(cams)
     try:
         for c in cams:
             procs.append(start_node('volcap_color', 'color_corrector', {}, namespace=c))
+        assert probe.spin_until(every_model_loaded, timeout=120), 'a corrector never reported its colour model'
         # only what the correctors take (the player would wait for subscribers to anything else);
         # each colour topic has two subscribers, its corrector and the probe
         played = [f'{c}/{topics.COLOR_IMAGE}' for c in cams]
