@@ -58,13 +58,11 @@ class RigFusion:
         self.pool = ThreadPoolExecutor(decode_threads, 'rig_views') if decode_threads > 1 else None
 
     def fuse(self, stamp_ns: int, calibration: Calibration, cameras: list[str], parts: dict[str, Any],
-             to_view: Callable[[str, Any, np.ndarray], CameraView], glb: bool = False,
-             encode_now: bool = True) -> FusedSet:
+             to_view: Callable[[str, Any, np.ndarray], CameraView], glb: bool = False) -> FusedSet:
         """``parts[camera]`` (absent or None: the camera missed the set) becomes a view through
         ``to_view(camera, part, T_frame_color)``; the views are fused in the calibration's output
         frame (the studio frame when it has one, on the floor when the floor defined it). A GLB is
-        encoded (``encode``; later, by the caller, with ``encode_now`` False) when ``glb`` or the
-        sequence keeps GLBs, and the model is not empty."""
+        encoded when ``glb`` or the sequence keeps GLBs, and the model is not empty."""
         frame, T_frame_world = calibration.output_frame()
         studio = calibration.studio
         on_floor = studio is not None and studio.details.get('source') == 'floor'
@@ -75,19 +73,10 @@ class RigFusion:
         if plan.skipped:
             return out
         out.model = self.fusion.fuse(plan.views, on_floor=on_floor)
-        if encode_now:
-            self.encode(out, glb)
+        if not out.empty and (glb or (self.writer is not None and 'glb' in self.writer.formats)):
+            out.encoded = encode(out.model, self.encoding, stamp_ns, self.writer.written if self.writer else None,
+                                 frame)
         return out
-
-    def encode(self, fused: FusedSet, glb: bool = False) -> None:
-        """``fused.encoded``: the model's GLB, when ``glb`` or the sequence keeps GLBs and the
-        model is not empty. Apart from ``fuse`` so a node can encode one set while the next is
-        fused (sets must be encoded in order: the GLB names its place in the sequence)."""
-        if fused.model is None or fused.empty:
-            return
-        if glb or (self.writer is not None and 'glb' in self.writer.formats):
-            fused.encoded = encode(fused.model, self.encoding, fused.stamp_ns,
-                                   self.writer.written if self.writer else None, fused.frame)
 
     def write(self, fused: FusedSet) -> None:
         """The fused set into the sequence (a ``writer`` is needed). ``OSError`` (a full disk)

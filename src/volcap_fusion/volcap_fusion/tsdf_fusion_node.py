@@ -14,11 +14,9 @@ A frame set is the cameras' images with the same stamp (within
 ``sync_tolerance_ms``); one still incomplete after ``frame_timeout_ms`` is fused from the
 cameras that arrived, and the missing ones are reported on ``volcap/diagnostics``.
 
-Fusion runs in two stages, each on a thread fed by a bounded drop-oldest queue (one set waits by
-default): decoding, integrating and meshing a set, then encoding its GLB, publishing and writing
-it, so the next set is fused while this one is sent. A slow volume never stalls the
-subscriptions and no backlog builds: when fusion falls behind, the oldest waiting frame sets
-are dropped (and counted). In a live graph only the frame
+Fusion runs on a worker thread fed by a bounded drop-oldest queue (one set waits by default),
+so a slow volume never stalls the subscriptions and no backlog builds: when fusion falls
+behind, the oldest waiting frame sets are dropped (and counted). In a live graph only the frame
 sets admitted on ``/volcap/admission`` are gathered (``volcap_core.admission``).
 
 Output is in the calibration's studio frame (``volcap_studio``: +Z up, origin on the floor),
@@ -102,14 +100,10 @@ class TsdfFusionNode(Node):
         self.stats = {'fused': 0, 'fused_complete': 0, 'incomplete': 0, 'skipped': 0, 'empty': 0, 'out_of_order': 0}
         self.newest_submitted = -1
         self.latency_ms: deque[tuple[float, float]] = deque(maxlen=256)    # (monotonic s, ms)
-        self.work_s = 0.0      # CPU time of the two stages' threads
+        self.work_s = 0.0      # process CPU time while fusing (includes the receiving meanwhile)
         self.last = {}
-        # Two stages, each on its own thread: the next frame set is decoded, integrated and
-        # meshed while this one's GLB is encoded, published and written (in order).
         self.worker = DropOldestWorker(self._fuse, self.node_cfg.queue_size, 'tsdf_fusion_worker',
                                        on_error=self._on_fusion_error)
-        self.output = DropOldestWorker(self._output, self.node_cfg.queue_size, 'tsdf_fusion_output',
-                                       on_error=lambda item, e: self._on_fusion_error(item[:1], e))
 
         self.create_subscription(String, '/' + topics.CALIBRATION, self._on_calibration, qos.LATCHED)
         self.create_subscription(String, '/' + topics.PHASE, self._on_phase, qos.LATCHED)
@@ -212,14 +206,13 @@ class TsdfFusionNode(Node):
     # fusion (worker thread) ---------------------------------------------------------------
     def _fuse(self, item) -> None:
         fs, calibration, cameras = item
-        t0, cpu0 = time.perf_counter(), time.thread_time()
+        t0, cpu0 = time.perf_counter(), time.process_time()
         try:
             self._fuse_set(fs, calibration, cameras, t0)
         finally:
-            self.work_s += time.thread_time() - cpu0
+            self.work_s += time.process_time() - cpu0
 
     def _fuse_set(self, fs: FrameSet, calibration: Calibration, cameras: list[str], t0: float) -> None:
-        """Stage one: the set's views, integrated and meshed; handed to ``_output``."""
         if self.node_cfg.input == WIRE:
             streams, to_view = ('depth', 'depth_info', 'color', 'color_info'), wire_view
         else:
@@ -227,8 +220,8 @@ class TsdfFusionNode(Node):
         pairs = {c: tuple(fs.get(c, s) for s in streams) for c in cameras}
         parts = {c: p for c, p in pairs.items() if None not in p}
         fused = self.rig.fuse(fs.stamp_ns, calibration, cameras, parts, lambda c, p, T: to_view(c, *p, T),
-                              encode_now=False)
-        plan = fused.plan
+                              glb=bool(self.pub_glb.get_subscription_count()))
+        plan, model, encoded, frame = fused.plan, fused.model, fused.encoded, fused.frame
         if plan.problems:
             self.diagnostics.report('warn', 'cameras left out of frame set: '
                                     + '; '.join(f'{c}: {e}' for c, e in plan.problems.items()))
@@ -242,21 +235,6 @@ class TsdfFusionNode(Node):
             self.stats['empty'] += 1
             self.last = {'cameras': len(plan.views), 'vertices': 0}
             return
-        self.output.submit((fs, fused, t0))
-
-    def _output(self, item) -> None:
-        """Stage two: the GLB (while someone subscribes, or the sequence keeps GLBs), the
-        published outputs, the sequence frame and the figures."""
-        fs, fused, t0 = item
-        cpu0 = time.thread_time()
-        try:
-            self._output_set(fs, fused, t0)
-        finally:
-            self.work_s += time.thread_time() - cpu0
-
-    def _output_set(self, fs: FrameSet, fused: FusedSet, t0: float) -> None:
-        self.rig.encode(fused, glb=bool(self.pub_glb.get_subscription_count()))
-        plan, model, encoded, frame = fused.plan, fused.model, fused.encoded, fused.frame
         if self.pub_points.get_subscription_count():
             self.pub_points.publish(points_to_pointcloud2(model.vertices, model.colors, fs.stamp_ns, frame))
         if self.pub_mesh.get_subscription_count():
@@ -344,10 +322,9 @@ class TsdfFusionNode(Node):
         if recent:
             p50, p95 = np.percentile(recent, [50, 95])
             latency = {'latency_ms_p50': round(float(p50), 1), 'latency_ms_p95': round(float(p95), 1)}
-        o = self.output
-        self.diagnostics.report(level, message, waiting=w.pending + o.pending,
-                                dropped=w.dropped + o.dropped + self.stats['skipped'] + self.stats['out_of_order'],
-                                queue_dropped=w.dropped + o.dropped, errors=w.errors + o.errors,
+        self.diagnostics.report(level, message, waiting=w.pending,
+                                dropped=w.dropped + self.stats['skipped'] + self.stats['out_of_order'],
+                                queue_dropped=w.dropped, errors=w.errors,
                                 work_s=round(self.work_s, 3), **self.stats, **self.last, **latency,
                                 silent_cameras=','.join(silent), short_of=','.join(self.short_of),
                                 silent_s=','.join(f'{s:.1f}' for s in silent.values()),
@@ -355,7 +332,6 @@ class TsdfFusionNode(Node):
 
     def destroy_node(self):
         self.worker.stop()
-        self.output.stop()
         if self.rig.writer is not None:
             self.rig.writer.close()
         return super().destroy_node()
