@@ -160,7 +160,7 @@ class SetPacer:
     def start_set(self, target_ns: int, now_ns: int) -> tuple[bool, bool]:
         """(send this set, move the schedule to now first) for a set that starts at ``target_ns``."""
         self._set_start = target_ns
-        index, self.sets = self.sets, self.sets + 1
+        self.sets += 1
         if self.max_lag_ns <= 0:
             self._send = True
             self.sent_sets += 1
