@@ -149,6 +149,28 @@ def cpu_seconds(pid: int) -> float:
     return times.user + times.system
 
 
+def stop_recorder(recorder) -> None:
+    """SIGINT (the recorder closes its bag), or kill it when it does not exit."""
+    if recorder.poll() is None:
+        recorder.send_signal(signal.SIGINT)
+        try:
+            recorder.wait(60)
+        except subprocess.TimeoutExpired:
+            recorder.kill()
+            recorder.wait()
+
+
+def recorded(out: Path, published_sets: int, topics: list[str]) -> dict:
+    """What the recorder wrote against what was published on ``topics``, every CRC checked."""
+    from volcap_core.bag_reader import BagReader
+    with BagReader(out) as bag:
+        counts = bag.topic_counts
+        readable = bag.verify()
+    expected = published_sets * len(topics)
+    return {'recorded': sum(counts.values()), 'expected': expected, 'readable': readable,
+            'recorded_share': sum(counts.values()) / expected}
+
+
 def record_live(out: Path, frames: int, kill_after: float | None = None, split_bytes: int = 4_000_000_000) -> dict:
     """The recorder node fed by the rig publisher; optionally killed -9 ``kill_after`` s into the take."""
     from volcap_bringup.processes import start_node
@@ -181,20 +203,10 @@ def record_live(out: Path, frames: int, kill_after: float | None = None, split_b
             return {'killed_after_s': kill_after}
         published = json.loads(pub.communicate(timeout=frames / FPS + 120)[0].strip().splitlines()[-1])
         cpu = cpu_seconds(recorder.pid) - cpu0
-        recorder.send_signal(signal.SIGINT)
-        recorder.wait(60)
     finally:
-        if recorder.poll() is None:
-            recorder.kill()
-            recorder.wait()
-    from volcap_core.bag_reader import BagReader
-    with BagReader(out) as bag:
-        counts = bag.topic_counts
-        readable = bag.verify()
-    expected = published['published'] * len(topics)
+        stop_recorder(recorder)
     return {'published_sets': published['published'], 'publish_fps': published['publish_fps'],
-            'recorded': sum(counts.values()), 'expected': expected, 'readable': readable,
-            'recorded_share': sum(counts.values()) / expected,
+            **recorded(out, published['published'], topics),
             'recorder_cpu_s_per_capture_s': cpu / (published['published'] / FPS),
             'files': len(list(out.glob('*.mcap')))}
 
@@ -222,20 +234,10 @@ def record_wire(out: Path, wire_bag: str, seconds: float) -> dict:
                              timeout=seconds + 120)
         published = json.loads(pub.stdout.strip().splitlines()[-1])
         cpu = cpu_seconds(recorder.pid) - cpu0
-        recorder.send_signal(signal.SIGINT)
-        recorder.wait(60)
     finally:
-        if recorder.poll() is None:
-            recorder.kill()
-            recorder.wait()
-    from volcap_core.bag_reader import BagReader
-    with BagReader(out) as bag:
-        counts = bag.topic_counts
-        readable = bag.verify()
-    expected = published['sent_sets'] * len(topics)
+        stop_recorder(recorder)
     return {'published_sets': published['sent_sets'], 'publish_fps': published['sent_fps'],
-            'payload_mbit_s': published['payload_mbit_s'], 'recorded': sum(counts.values()), 'expected': expected,
-            'readable': readable, 'recorded_share': sum(counts.values()) / expected,
+            'payload_mbit_s': published['payload_mbit_s'], **recorded(out, published['sent_sets'], topics),
             'recorder_cpu_s_per_capture_s': cpu / (published['sent_sets'] / FPS)}
 
 

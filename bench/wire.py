@@ -74,7 +74,7 @@ def one_core_pipeline(bag: str, calibration: str, frames: int) -> dict:
         msgs = {}
         with BagReader(bag) as reader:
             for m in reader.messages([topics_of['color'], topics_of['depth']]):
-                msgs.setdefault(m.stamp_ns if 'depth' not in m.topic else m.stamp_ns, {})[
+                msgs.setdefault(m.stamp_ns, {})[
                     'depth' if m.topic == topics_of['depth'] else 'color'] = m
         # pair by nearest stamp within 20 ms (colour and depth are stamped apart on some rigs)
         colors = sorted((s, v['color']) for s, v in msgs.items() if 'color' in v)
@@ -145,14 +145,18 @@ def one_core_pipeline(bag: str, calibration: str, frames: int) -> dict:
 def fusion_comparison(bag: str, calibration: str, wirebag: str, frames: int) -> dict:
     """Parts 3 and 4: the same frame sets fused from the wire and from full frames."""
     import numpy as np
+    from rclpy.serialization import deserialize_message
     from scipy.spatial import cKDTree
+    from sensor_msgs.msg import Image
 
     from volcap_color.corrector import CameraCorrection
     from volcap_core import wire
     from volcap_core.bag_reader import BagReader
     from volcap_core.calibration import Calibration
     from volcap_core.camera import depth_to_millimetres
+    from volcap_core.cdr import image_to_cdr
     from volcap_core.color import delta_e2000
+    from volcap_core.conversions import color_to_rgb, image_to_numpy
     from volcap_core.poses import transform_points
     from volcap_eval.fusion import dropout_rate, score_frame
     from volcap_filter.pipeline import DepthFilterConfig
@@ -226,11 +230,7 @@ def fusion_comparison(bag: str, calibration: str, wirebag: str, frames: int) -> 
     for voxel in (0.01, 0.006):
         for design in ('wire', 'full'):
             rig = RigFusion(TsdfFusion(FusionConfig(voxel_size=voxel)), EncodeConfig().for_voxel(voxel))
-            from rclpy.serialization import deserialize_message
-            from sensor_msgs.msg import Image
 
-            from volcap_core.cdr import image_to_cdr
-            from volcap_core.conversions import color_to_rgb, image_to_numpy
             if design == 'full':     # as the full-size messages arrive: CDR to decode
                 blobs = {s: {c: (image_to_cdr(q[0], '16UC1', s, c), q[1], image_to_cdr(q[2], 'rgb8', s, c), q[3])
                              for c, q in full_sets[s].items()} for s in stamps}
