@@ -1,20 +1,28 @@
-"""Neural colour harmonisation timings (paper 001) at rig sizes, each against the bare torch call
-measured in the same run:
+"""Paper 001's neural harmonisation against its targets (issue 29), on 2 cores or a GPU:
 
-- training: ``volcap harmonise`` with its defaults on 8 cameras (or a models folder it wrote,
-  with ``--models``): time per step of E and of D against one bare torch step of the same
-  network on the same batch, and the time to convergence (the first epoch whose loss is within
-  5 % of the final loss above the floor the last epochs reach);
-- live form per 1280x720 frame: ``ImageCorrector`` on a camera's region LUT, against running
-  its network D on every pixel with torch (the paper's way of regenerating an image) and
-  against the plain 33^3 3D LUT of the colour stage.
+- real texture (``volcap eval color-frames ../shared/data/rgbd_box --harmonise``, 8 views,
+  seeds 0, 1, 2): wall time of the harmonisation, E's RMS on held-out pixels of every camera,
+  the neural method (networks D and their live region LUTs) against the true colours
+  (CIEDE2000, one 3x3 shared), pairwise against the true colours' floor, saturated chroma
+  against the truth's, beside the chart-free gain model and the paper's baselines;
+- the synthetic studio (8 cameras, seeds 7 and 0; rendered and calibrated from its board
+  views, so the reference is anchored to the chart): ``volcap harmonise`` with the demo's
+  short settings, then ``volcap eval color`` on frame sets it never saw: neural against
+  every baseline and our chart-free model, pairwise and on the truth;
+- the live form: ``ImageCorrector`` on a region LUT per 1280x720 frame against D on every
+  pixel with torch.
 
-    python bench/neural.py BAG CALIBRATION [--frames 6] [--out bench_out/neural] [--models DIR]
+    python bench/neural.py [--out bench_out/neural] [--frames-seeds 0 1 2] [--studio-seeds 7 0]
+        [--field hashgrid|paper]
+
+Each run's full report is written beside ``bench_neural.json``; figures: the colour methods and
+images of each run (``figures/``).
 """
 import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,109 +30,137 @@ import torch
 from color_stage import median_ms  # bench/ is on the path when run as a script
 
 from volcap_color.apply import ImageCorrector, RegionLut
-from volcap_color.neural_models import load_harmonisation
-from volcap_color.neural_nets import CaptureMapper, ColorField
-from volcap_color.neural_train import use_bf16
+from volcap_color.config import HarmoniseConfig
 from volcap_core import transport
-from volcap_core.color import ColorModel
+
+SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
+BASELINES = ('reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon')
 
 
-def bare_step_ms(model, inputs, target, bf16: bool) -> float:
-    """One plain Adam step of ``model`` on the whole batch: the raw library cost."""
-    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
-
-    def step():
-        with torch.autocast('cpu', dtype=torch.bfloat16, enabled=bf16):
-            out = model(*inputs)
-        loss = torch.mean((out.float() - target) ** 2)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return median_ms(step, repeat=10)
+def _row(rows: dict, name: str) -> dict:
+    s = rows.get(name) or {}
+    return {k: s.get(k) for k in ('de2000_mean', 'psnr_mean', 'truth_de2000', 'truth_de2000_exposure',
+                                  'chroma_before', 'chroma_after')}
 
 
-def converged_epoch(losses: list[float], tolerance: float = 0.05) -> int:
-    floor = min(losses[-max(3, len(losses) // 10):])
-    start = losses[0] - floor
-    for i, v in enumerate(losses):
-        if v - floor <= tolerance * start:
-            return i + 1
-    return len(losses)
+def real_texture(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
+    from volcap_eval.color import ColorEvalConfig, evaluate_frames_color
+    models = out / f'frames_seed{seed}'
+    t0 = time.perf_counter()
+    report, _ = evaluate_frames_color(SHARED / 'rgbd_box', count=8, seed=seed, cfg=ColorEvalConfig(),
+                                      progress=False, harmonise=(models, replace(cfg, seed=seed)))
+    wall = time.perf_counter() - t0
+    (out / f'frames_seed{seed}.json').write_text(json.dumps(report, indent=1, default=float))
+    manifest = json.loads((models / 'manifest.json').read_text())
+    rows = report['methods_all_pairs']
+    return {'seed': seed, 'harmonise_seconds': manifest['seconds']['total'], 'eval_wall_seconds': wall,
+            'field_seconds': manifest['field']['seconds'],
+            'mapper_seconds': sum(r['seconds'] for r in manifest['mappers'].values()),
+            'field_held_out_rms': manifest['field_error']['rms_levels'],
+            'export_error_mean_levels': float(np.mean([e['mean_levels'] for e in manifest['export_error'].values()])),
+            'texture': manifest['texture'],
+            'methods': {n: _row(rows, n) for n in ('original', *BASELINES, 'volcap_chart_free', 'neural',
+                                                   'neural_live', 'true_colours')}}
+
+
+def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
+    from volcap_bringup.demo_cli import DemoConfig
+    from volcap_calib.run import CalibrateConfig
+    from volcap_calib.run import run as calibrate
+    from volcap_color import neural
+    from volcap_color.correspondence import cameras_in
+    from volcap_core.calibration import Calibration
+    from volcap_eval.color import ColorEvalConfig
+    from volcap_eval.color import run as evaluate_color
+    from volcap_pipeline.replay import capture_views
+    from volcap_studio.session import synthesize
+    from volcap_studio.studio import SynthConfig
+    demo = DemoConfig()
+    bag, calibration = out / f'studio_seed{seed}', out / f'studio_seed{seed}.calibration.yaml'
+    if not calibration.exists():
+        synthesize(bag, SynthConfig(cameras=8, frames=demo.colour_frames, board_poses=demo.board_poses,
+                                    background_frames=3, seed=seed), overwrite=True)
+        calibrate(CalibrateConfig(bag, calibration))
+    rig = Calibration.load(calibration)
+    t0 = time.perf_counter()
+    sets = capture_views(bag, rig, demo.colour_frames, False)
+    models = out / f'studio_seed{seed}.neural'
+    short = replace(cfg, seed=seed, **{k: v for k, v in demo.harmonise().items() if k != 'seed'})
+    trained = neural.run(sets, cameras_in(sets, rig), short, models, progress=False, views_seconds=0.0,
+                         chart_models=neural.chart_models(rig))
+    harmonise_s = time.perf_counter() - t0
+    report = evaluate_color(bag, calibration, ColorEvalConfig(frames=demo.colour_frames), neural=models,
+                            progress=False)
+    (out / f'studio_seed{seed}.json').write_text(json.dumps(report, indent=1, default=float))
+    rows = report['methods']
+    return {'seed': seed, 'harmonise_seconds': harmonise_s, 'anchor': trained.manifest['anchor'],
+            'field_held_out_rms': trained.manifest['field_error']['rms_levels'], 'texture': trained.manifest['texture'],
+            'methods': {n: _row(rows, n) for n in rows}}
+
+
+def live_form(models: Path) -> dict:
+    from volcap_color.neural_models import load_harmonisation
+    harm = load_harmonisation(models)
+    image = np.random.default_rng(0).integers(0, 256, (720, 1280, 3), dtype=np.uint8)
+    cam = harm.cameras[0]
+    live = ImageCorrector(RegionLut.load(models / f'{cam}.lut.npz'))
+    out = live(image)
+    live_ms = median_ms(lambda: live(image, out), repeat=30)
+    ys, xs = np.mgrid[0:720, 0:1280]
+    xy = np.stack([(xs.reshape(-1) + 0.5) / 1280, (ys.reshape(-1) + 0.5) / 720], axis=1)
+    net_ms = median_ms(lambda: harm.map_colors(cam, image.reshape(-1, 3) / 255.0, xy), repeat=3)
+    return {'region_lut_ms': live_ms, 'torch_network_ms': net_ms}
+
+
+def _f(v, d=2):
+    return '-' if v is None else f'{v:.{d}f}'
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('bag')
-    p.add_argument('calibration')
-    p.add_argument('--frames', type=int, default=6)
     p.add_argument('--out', default='bench_out/neural')
-    p.add_argument('--models', help='a volcap harmonise output to time instead of training one')
+    p.add_argument('--frames-seeds', type=int, nargs='*', default=[0, 1, 2])
+    p.add_argument('--studio-seeds', type=int, nargs='*', default=[7, 0])
+    p.add_argument('--field', default='hashgrid', choices=('hashgrid', 'paper'))
     args = p.parse_args()
     transport.configure()
-    models = Path(args.models or args.out)
-    if not args.models:
-        from volcap_bringup.cli import main as volcap
-        t0 = time.perf_counter()
-        volcap(['harmonise', args.bag, '--calibration', args.calibration, '--out', str(models),
-                '--frames', str(args.frames)])
-        print(f'volcap harmonise (defaults) wall time: {time.perf_counter() - t0:.0f} s')
-    harm = load_harmonisation(models)
-    manifest = harm.report
-    cfg = harm.config
-    bf16 = use_bf16(cfg.precision, torch.device('cpu'))
-    result = {'models': str(models), 'threads': torch.get_num_threads(), 'bf16': bf16}
-
-    field = manifest['field']
-    e_step = field['seconds'] / field['steps'] * 1e3
-    n = cfg.field_batch
-    bare_e = ColorField(np.zeros(3), np.ones(3), np.zeros(3), np.ones(3), cfg.field_width, cfg.point_frequencies,
-                        cfg.camera_frequencies)
-    e_bare = bare_step_ms(bare_e, (torch.rand(n, 3), torch.rand(n, 3)), torch.rand(n, 3), bf16)
-    conv = converged_epoch(field['losses'])
-    result['field'] = {'samples': manifest['field_samples'], 'epochs': len(field['losses']), 'steps': field['steps'],
-                       'seconds': field['seconds'], 'step_ms': e_step, 'bare_step_ms': e_bare,
-                       'converged_epoch': conv, 'seconds_to_converge': field['seconds'] * conv / len(field['losses']),
-                       'final_rms_levels': 255 * field['losses'][-1] ** 0.5}
-    d_seconds = sum(r['seconds'] for r in manifest['mappers'].values())
-    d_steps = sum(r['steps'] for r in manifest['mappers'].values())
-    m = cfg.mapper_batch
-    d_bare = bare_step_ms(CaptureMapper(cfg.mapper_width, cfg.mapper_layers), (torch.rand(m, 3), torch.rand(m, 2)),
-                          torch.rand(m, 3), bf16)
-    result['mappers'] = {'cameras': len(manifest['mappers']), 'seconds': d_seconds,
-                         'step_ms': d_seconds / d_steps * 1e3, 'bare_step_ms': d_bare}
-    result['harmonise_seconds'] = manifest.get('seconds')
-    print(f"E: {result['field']['samples']} samples x {result['field']['epochs']} epochs, {field['seconds']:.0f} s; "
-          f"{e_step:.1f} ms per step vs bare torch step {e_bare:.1f} ms ({e_step / e_bare:.2f}x); "
-          f"converged (within 5 %) at epoch {conv}, {result['field']['seconds_to_converge']:.0f} s; "
-          f"final RMS {result['field']['final_rms_levels']:.2f} levels")
-    print(f"D: {len(manifest['mappers'])} cameras, {d_seconds:.0f} s; {result['mappers']['step_ms']:.2f} ms per step "
-          f"vs bare {d_bare:.2f} ms ({result['mappers']['step_ms'] / d_bare:.2f}x)")
-    if manifest.get('seconds'):
-        s = manifest['seconds']
-        print(f"harmonise total {s['total']:.0f} s: views {s['views']:.0f}, training {s['training']:.0f}, "
-              f"export {s['export']:.0f}")
-
-    image = np.random.default_rng(0).integers(0, 256, (720, 1280, 3), dtype=np.uint8)
-    cam = harm.cameras[0]
-    lut = RegionLut.load(models / f'{cam}.lut.npz')
-    live = ImageCorrector(lut)
-    out = live(image)
-    live_ms = median_ms(lambda: live(image, out), repeat=30)
-    plain = ImageCorrector(ColorModel('root_polynomial_2', np.hstack([np.eye(3) * 1.05, np.full((3, 3), 0.02)])))
-    plain_ms = median_ms(lambda: plain(image, out), repeat=30)
-    ys, xs = np.mgrid[0:720, 0:1280]
-    xy = np.stack([(xs.reshape(-1) + 0.5) / 1280, (ys.reshape(-1) + 0.5) / 720], axis=1)
-    net_ms = median_ms(lambda: harm.map_colors(cam, image.reshape(-1, 3) / 255.0, xy), repeat=3)
-    n_nodes, (nx, ny) = lut.table.shape[0], lut.grid
-    result['live'] = {'region_lut_ms': live_ms, 'plain_3d_lut_ms': plain_ms, 'torch_network_ms': net_ms,
-                      'lut': f'{n_nodes}^3 x {nx}x{ny}', 'export_error': manifest.get('export_error', {}).get(cam)}
-    print(f'live form {n_nodes}^3 x {nx}x{ny} region LUT on 1280x720: {live_ms:.1f} ms; torch D on every pixel '
-          f'{net_ms:.0f} ms ({net_ms / live_ms:.0f}x slower); plain 33^3 3D LUT {plain_ms:.1f} ms '
-          f'({live_ms / plain_ms:.2f}x)')
-    out_json = Path(args.out) / 'bench_neural.json'
-    out_json.parent.mkdir(parents=True, exist_ok=True)
-    out_json.write_text(json.dumps(result, indent=2))
-    print(f'wrote {out_json}')
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = HarmoniseConfig(field=args.field)
+    device = 'cuda' if torch.cuda.is_available() else 'cpu'
+    result = {'device': device, 'threads': torch.get_num_threads(), 'field': args.field, 'real_texture': [],
+              'studio': []}
+    for seed in args.frames_seeds:
+        r = real_texture(seed, out, cfg)
+        result['real_texture'].append(r)
+        m = r['methods']
+        print(f"rgbd_box seed {seed}: harmonise {r['harmonise_seconds']:.0f} s (E {r['field_seconds']:.0f} s, "
+              f"D {r['mapper_seconds']:.0f} s; target <= 600), E held-out RMS {r['field_held_out_rms']:.2f} levels "
+              f"(target <= 6); truth CIEDE2000 neural {_f(m['neural']['truth_de2000'])} / live "
+              f"{_f(m['neural_live']['truth_de2000'])} (target <= 1.6; gain model "
+              f"{_f(m['volcap_chart_free']['truth_de2000'])}, untouched {_f(m['original']['truth_de2000'])}); "
+              f"pairwise {_f(m['neural']['de2000_mean'])} (floor {_f(m['true_colours']['de2000_mean'])}, target <= "
+              f"floor + 0.3); saturated chroma {_f(m['neural']['chroma_after'], 1)} vs truth's "
+              f"{_f(m['true_colours']['chroma_after'], 1)} (target within 10 %)", flush=True)
+    for seed in args.studio_seeds:
+        r = studio(seed, out, cfg)
+        result['studio'].append(r)
+        m = r['methods']
+        others = {n: v for n, v in m.items() if n not in ('neural', 'neural_live', 'true_colours')}
+        best_pair = min((v['de2000_mean'], n) for n, v in others.items() if v['de2000_mean'] is not None)
+        best_truth = min((v['truth_de2000'], n) for n, v in others.items() if v['truth_de2000'] is not None)
+        print(f"studio seed {seed}: harmonise (demo's short run) {r['harmonise_seconds']:.0f} s (target <= 180), "
+              f"anchor {r['anchor']}; neural pairwise {_f(m['neural']['de2000_mean'])} vs best other "
+              f"{best_pair[0]:.2f} ({best_pair[1]}); truth {_f(m['neural']['truth_de2000'])} vs best other "
+              f"{best_truth[0]:.2f} ({best_truth[1]}); untouched truth {_f(m['original']['truth_de2000'])}",
+              flush=True)
+    if args.frames_seeds:
+        result['live'] = live_form(out / f'frames_seed{args.frames_seeds[0]}')
+        print(f"live form on 1280x720: region LUT {result['live']['region_lut_ms']:.1f} ms, torch D on every pixel "
+              f"{result['live']['torch_network_ms']:.0f} ms")
+    path = out / 'bench_neural.json'
+    path.write_text(json.dumps(result, indent=2, default=float))
+    print(f'wrote {path}')
     return 0
 
 

@@ -3,6 +3,8 @@ reference colour on pixels of a frame it was not trained on, the live region LUT
 training is deterministic and resumes from its checkpoint; `volcap harmonise` and
 `volcap eval colour --neural` end to end on the small studio bag."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -56,10 +58,14 @@ def _sets(frames=2):
     return [[_view(n, e, 0.15 * f) for n, e in eyes.items()] for f in range(frames)]
 
 
-TINY = HarmoniseConfig(points=30_000, field_epochs=60, field_batch=1000, field_lr=2e-3, field_width=64,
-                       point_frequencies=6, camera_frequencies=2, mapper_points=1500, mapper_epochs=60,
-                       mapper_batch=100, mapper_lr=2e-3, mapper_width=64, mapper_layers=4, reference='cam0',
-                       lut_colors=17, lut_grid=(5, 4), precision='fp32', device='cpu')
+# the hash grid field (the default) sized for a 0.6 m sphere; a fixed number of steps
+TINY = HarmoniseConfig(points=30_000, field_epochs=40, field_batch=1024, grid_levels=8, grid_log2_table=14,
+                       grid_cell_mm=8.0, head_width=32, mapper_points=3000, mapper_epochs=60, mapper_batch=256,
+                       mapper_width=32, mapper_layers=3, reference="cam0", lut_colors=17, lut_grid=(9, 5),
+                       precision='fp32', device='cpu')
+# paper 001's MLP field, as small
+PAPER_TINY = replace(TINY, field='paper', points=20_000, field_epochs=30, field_batch=500, field_lr=2e-3,
+                     field_lr_final=None, field_width=64, point_frequencies=6, camera_frequencies=2)
 
 
 @pytest.fixture(scope='module')
@@ -70,15 +76,56 @@ def trained(tmp_path_factory):
     return sets, harm, out
 
 
+def test_the_field_fits_the_cameras_own_held_out_pixels_in_a_fixed_number_of_steps(trained):
+    """E reproduces pixels it never saw, of every camera, to within a few levels (the images'
+    own noise and rounding are about one level), after a fixed number of steps."""
+    _, harm, _ = trained
+    e = harm.report['field_error']
+    assert e["pixels"] > 500 and set(e['per_camera']) == set(GAINS)
+    assert e['rms_levels'] < 4.0 and max(e['per_camera'].values()) < 5.0, e
+    assert harm.report['field']['steps'] == TINY.field_epochs * -(-harm.report['field_samples'] // TINY.field_batch)
+
+
+def test_d_keeps_the_texture_and_maps_onto_the_true_colours(trained):
+    """On a textured view D keeps the saturated chroma and the lightness spread of the truth
+    within 10 % (the cameras differ only in gains and vignetting, the reference is cam0, so
+    the truth is cam0's gains without vignetting)."""
+    sets, harm, _ = trained
+    from volcap_core.color import srgb_to_lab, srgb_to_linear
+    for cam in GAINS:
+        view = next(v for v in sets[1] if v.name == cam)
+        ok = view.depth.reshape(-1) > 0
+        h, w = view.depth.shape
+        ys, xs = np.divmod(np.flatnonzero(ok), w)
+        xy = np.stack([(xs + 0.5) / w, (ys + 0.5) / h], axis=1)
+        rgb = view.color.reshape(-1, 3)[ok] / 255.0
+        mapped = harm.map_colors(cam, rgb, xy)
+        u = view.camera.pixel_rays()[..., :2].reshape(-1, 2)[ok]
+        vignette = 1.0 - 0.25 * np.sum((u / np.abs(view.camera.pixel_rays()[..., :2].reshape(-1, 2)).max(0)) ** 2,
+                                       axis=1) / 2
+        true_lin = srgb_to_linear(rgb) / (np.asarray(GAINS[cam]) * vignette[:, None]) * np.asarray(GAINS['cam0'])
+        lab_m, lab_t = srgb_to_lab(mapped), srgb_to_lab(linear_to_srgb(np.clip(true_lin, 0, 1)))
+        chroma_m, chroma_t = np.hypot(*lab_m[:, 1:].T), np.hypot(*lab_t[:, 1:].T)
+        sat = chroma_t >= 15
+        assert sat.sum() > 200
+        assert abs(chroma_m[sat].mean() / chroma_t[sat].mean() - 1) < 0.10, (cam, chroma_m[sat].mean(),
+                                                                             chroma_t[sat].mean())
+        assert abs(lab_m[:, 0].std() / lab_t[:, 0].std() - 1) < 0.10
+        assert np.abs(lab_m - lab_t).mean() < 3.0
+        kept = harm.report['texture'][cam]
+        assert kept['lightness_kept'] > 0.9 and kept.get('chroma_kept', 1.0) > 0.9, kept
+
+
 def test_training_lowers_the_loss_and_d_reproduces_e_on_held_out_pixels(trained):
     sets, harm, _ = trained
     field = harm.report['field']['losses']
-    assert len(field) == TINY.field_epochs and field[-1] < 0.01 * field[0]
+    assert len(field) == TINY.field_epochs and field[-1] < 0.05 * field[0]
     for cam in GAINS:
         losses = harm.report['mappers'][cam]['losses']
-        assert losses[-1] < 0.01 * losses[0]
+        assert losses[-1] < 2e-3 and losses[-1] < 0.5 * losses[0]     # D starts as the identity
         err = harm.report['mapper_error'][cam]          # pixels of the training frame D did not train on
         assert err['pixels'] > 100 and err['rms_levels'] < 3.0, (cam, err)
+    assert harm.report['anchor'] == 'none' and harm.report['reference'] == 'cam0'
     # D brings the cameras' different gains to the reference: on the second (unseen) frame the
     # mapped colours of corresponding pixels agree much better than the raw ones
     for a, b in ((0, 1), (0, 2)):
@@ -93,11 +140,20 @@ def test_training_lowers_the_loss_and_d_reproduces_e_on_held_out_pixels(trained)
 
 
 def test_live_region_lut_matches_d(trained):
+    """The live form stays within 0.5 CIEDE2000 of the networks on a frame they never saw."""
+    from volcap_core.color import delta_e2000
     sets, harm, _ = trained
     for cam in GAINS:
         lut = bake_region_lut(harm, cam)
-        err = export_error(harm, cam, lut, [v.color for v in sets[1] if v.name == cam])
-        assert err['mean_levels'] < 0.6 and err['p99_levels'] <= 3, (cam, err)
+        image = next(v.color for v in sets[1] if v.name == cam)
+        err = export_error(harm, cam, lut, [image])
+        assert err['mean_levels'] < 1.5 and err['p99_levels'] <= 4, (cam, err)
+        h, w = image.shape[:2]
+        ys, xs = np.mgrid[0:h, 0:w]
+        xy = np.stack([(xs.reshape(-1) + 0.5) / w, (ys.reshape(-1) + 0.5) / h], axis=1)
+        live = ImageCorrector(lut)(image).reshape(-1, 3) / 255.0
+        net = np.clip(harm.map_colors(cam, image.reshape(-1, 3) / 255.0, xy), 0, 1)      # D itself, not rounded
+        assert delta_e2000(live, net).mean() < 0.5, cam
     # the uint8 kernel and the float interpolation used for scoring are the same function
     rng = np.random.default_rng(3)
     image = rng.integers(0, 256, (30, 50, 3), dtype=np.uint8)
@@ -154,6 +210,40 @@ def test_harmonise_resumes_after_the_networks_it_finished(trained):
     from dataclasses import replace
     with pytest.raises(ValueError, match='other settings'):
         harmonise(sets[:1], list(GAINS), replace(TINY, field_epochs=61), out, resume=True, progress=False)
+
+
+def test_the_papers_field_still_trains(tmp_path):
+    """``field='paper'``: paper 001's MLP with positional encoding, for reproduction."""
+    harm = harmonise(_sets(1), list(GAINS), PAPER_TINY, tmp_path, progress=False)
+    losses = harm.report['field']['losses']
+    assert len(losses) == PAPER_TINY.field_epochs and losses[-1] < 0.2 * losses[0]
+    assert type(harm.field).__name__ == 'ColorField'
+
+
+def test_the_reference_is_anchored_to_the_charts_or_grey_world(tmp_path):
+    """With a chart model per camera the reference is each camera's view through its chart
+    model, averaged: a cast every camera shares (here the charts say the truth is 20 % less
+    red than every camera records) is taken out; without charts ``grey_world`` balances the
+    scene average; asking for charts that the calibration lacks is a clear error."""
+    from volcap_color.neural_train import Reference
+    from volcap_core.color import ColorModel
+    sets = _sets(1)
+    cfg = replace(TINY, reference='mean', field_epochs=20, mapper_epochs=2)
+    less_red = {c: ColorModel('matrix_3x3', np.diag([0.8, 1.0, 1.0])) for c in GAINS}
+    harm = harmonise(sets, list(GAINS), replace(cfg, anchor='auto'), tmp_path / 'chart', progress=False,
+                     chart_models=less_red)
+    assert harm.report['anchor'] == 'chart'
+    points = torch.as_tensor(np.random.default_rng(0).normal(size=(500, 3)).astype(np.float32) * 0.1)
+    plain = Reference(harm.field, harm.reference_centres(), False)(points).numpy()
+    charted = Reference(harm.field, harm.reference_centres(), False, [less_red[c] for c in GAINS])(points).numpy()
+    from volcap_core.color import srgb_to_linear
+    ratio = srgb_to_linear(charted).mean(0) / srgb_to_linear(plain).mean(0)
+    assert ratio == pytest.approx([0.8, 1.0, 1.0], abs=0.02)
+    grey = harmonise(sets, list(GAINS), replace(cfg, anchor='grey_world'), tmp_path / 'grey', progress=False)
+    assert grey.report['anchor'] == 'grey_world' and len(grey.report['anchor_gains']) == 3
+    with pytest.raises(ValueError, match='no chart colour model for cam1'):
+        harmonise(sets, list(GAINS), replace(cfg, anchor='chart'), tmp_path / 'x', progress=False,
+                  chart_models={'cam0': less_red['cam0']})
 
 
 def test_harmonise_rejects_an_unknown_reference(tmp_path):

@@ -51,16 +51,17 @@ def cmd_harmonise(args) -> int:
     sets = capture_views(args.bag, calibration, config_from_args(CaptureSetsConfig, args).frames, not args.quiet)
     report = neural.run(sets, cameras_in(sets, calibration), cfg, args.out, args.train_sets, args.resume,
                         not args.quiet, {'bag': str(args.bag), 'calibration': str(args.calibration)},
-                        time.perf_counter() - t0)
+                        time.perf_counter() - t0, neural.chart_models(calibration))
     print('\n'.join(report.lines()))
     return 0
 
 
 # The training settings `volcap harmonise` and `eval color-frames --harmonise` take; the others
-# (network sizes, encodings) stay the paper's and are set in code only.
-HARMONISE_OPTIONS = ('points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points',
-                     'mapper_epochs', 'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'background', 'reference',
-                     'lut_colors', 'lut_grid', 'seed', 'device', 'precision')
+# (the paper's network sizes and encodings) are set in code only.
+HARMONISE_OPTIONS = ('field', 'points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points',
+                     'mapper_epochs', 'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'mapper_input', 'mapper_width', 'mapper_layers',
+                     'gamut', 'background', 'reference', 'anchor', 'grid_levels', 'grid_log2_table', 'grid_cell_mm',
+                     'edge_levels', 'lut_colors', 'lut_grid', 'seed', 'device', 'precision')
 
 
 def harmonise_arguments(h, seed: bool = True) -> None:

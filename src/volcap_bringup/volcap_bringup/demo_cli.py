@@ -24,16 +24,15 @@ class DemoConfig:
     colour: bool = setting(True, 'run the colour steps: the short neural harmonisation and every colour method '
                            'scored (a third of the demo\'s time)')
     colour_frames: int = setting(4, 'capture frame sets the colour steps use', 2, 1000)
-    # a third of the default training, so the demo stays a few minutes (docs/color.md: full-length figures)
-    harmonise_epochs: int = setting(40, 'epochs of colour field E in the short neural run', 1, 10_000)
-    mapper_epochs: int = setting(20, 'epochs of each camera\'s network D in the short neural run', 1, 10_000)
+    # the default training with fewer samples per D, so the demo stays a few minutes (docs/color.md)
+    harmonise_epochs: int = setting(12, 'epochs of colour field E in the short neural run', 1, 10_000)
+    mapper_epochs: int = setting(60, 'epochs of each camera\'s network D in the short neural run', 1, 10_000)
     scored_frames: int = setting(5, 'fused frames scored against the ground truth', 1, 10_000)
     run_rate: float = setting(0.04, 'playback speed of the graph run (2 cores: 0.04 fuses every frame set)',
                               0.001, 10.0)
 
     def harmonise(self) -> dict:
-        return {'points': 100_000, 'field_epochs': self.harmonise_epochs, 'field_lr': 5e-4, 'field_lr_final': 5e-5,
-                'mapper_points': 30_000, 'mapper_epochs': self.mapper_epochs}
+        return {'field_epochs': self.harmonise_epochs, 'mapper_points': 30_000, 'mapper_epochs': self.mapper_epochs}
 
 
 def cmd_demo(args) -> int:
@@ -133,7 +132,7 @@ def _colour_steps(demo: DemoConfig, bag: Path, calibration: Path, out: Path) -> 
     sets = capture_views(bag, rig_calibration, demo.colour_frames)
     report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**demo.harmonise()),
                         models, sources={'bag': str(bag), 'calibration': str(calibration)},
-                        views_seconds=time.perf_counter() - t0)
+                        views_seconds=time.perf_counter() - t0, chart_models=neural.chart_models(rig_calibration))
     print('\n'.join(report.lines()))
 
     print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '

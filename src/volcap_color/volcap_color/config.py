@@ -57,34 +57,78 @@ class ColorFitConfig:
 
 
 
+# What each colour field trains with where its setting is left unset (None): the paper's
+# published settings for its MLP (with the sample count bounded for a CPU), and for the hash grid
+# what converged on 2 cores (docs/color.md, bench/neural.py).
+FIELD_DEFAULTS = {
+    'hashgrid': {'points': 1_000_000, 'field_epochs': 12, 'field_batch': 16384, 'field_lr': 1e-2,
+                 'field_lr_final': 1e-3},
+    'paper': {'points': 180_000, 'field_epochs': 100, 'field_batch': 5000, 'field_lr': 1e-4, 'field_lr_final': None},
+}
+
+
 @dataclass
 class HarmoniseConfig:
-    points: int = setting(180_000, 'surface samples for E, shared evenly by the training views', 1, 100_000_000)
-    field_epochs: int = setting(100, 'epochs of E', 1, 100_000)
-    field_batch: int = setting(5000, 'batch of E', 1, 10_000_000)
-    field_lr: float = setting(1e-4, 'learning rate of E', 0.0, 1.0)
+    field: str = setting('hashgrid', 'colour field E: hashgrid (ours: multi-resolution hash grid, a latent surface '
+                         'colour and a camera-conditioned response head; converges in minutes on a CPU) or paper '
+                         '(paper 001\'s MLP with positional encoding)', choices=('hashgrid', 'paper'))
+    points: int | None = setting(None, 'surface samples for E, shared evenly by the training views (None: 1 000 000 '
+                                 'for hashgrid, 180 000 for paper)', 1, 100_000_000)
+    field_epochs: int | None = setting(None, 'epochs of E (None: 12 for hashgrid, 100 for paper)', 1, 100_000)
+    field_batch: int | None = setting(None, 'batch of E (None: 16384 for hashgrid, 5000 for paper)', 1, 10_000_000)
+    field_lr: float | None = setting(None, 'learning rate of E (None: 1e-2 for hashgrid, 1e-4 for paper)', 0.0, 1.0)
     field_lr_final: float | None = setting(None, 'decay the learning rate of E exponentially to this by the last '
-                                           'epoch (None: constant)', 0.0, 1.0)
-    field_width: int = setting(256, 'hidden width of E', 1, 4096)
-    point_frequencies: int = setting(10, 'positional encoding frequencies of the point', 0, 32)
-    camera_frequencies: int = setting(4, 'positional encoding frequencies of the camera position', 0, 32)
+                                           'epoch (None: 1e-3 for hashgrid, constant for paper)', 0.0, 1.0)
+    field_width: int = setting(256, 'hidden width of E (paper)', 1, 4096)
+    point_frequencies: int = setting(10, 'positional encoding frequencies of the point (paper)', 0, 32)
+    camera_frequencies: int = setting(4, 'positional encoding frequencies of the camera position (paper)', 0, 32)
+    grid_levels: int = setting(12, 'hash grid levels (hashgrid)', 1, 32)
+    grid_log2_table: int = setting(16, 'hash grid entries per level, log2 (hashgrid)', 8, 24)
+    grid_cell_mm: float = setting(4.0, 'hash grid: size of the finest level\'s cells in mm (about the pixel '
+                                  'footprint on the subject)', 0.1, 1000.0)
+    edge_levels: float = setting(12.0, 'E weighs each pixel 1 / (1 + (g / edge_levels)^2) by its luminance gradient g '
+                                 '(levels per pixel): texture edges, where registration error changes the colour, '
+                                 'count less (0: all pixels alike)', 0.0, 1000.0)
+    robust_levels: float = setting(4.0, 'E\'s loss: Cauchy with this scale in levels, so pixels far from the '
+                                   'field (registration error, occlusion edges) pull less on the camera responses '
+                                   '(0: least squares)', 0.0, 255.0)
+    head_width: int = setting(64, 'hidden width of the hash grid field\'s MLP (hashgrid)', 4, 1024)
+    mapper_input: str = setting('field', 'what each D is trained to map: field (ours: E\'s colour of the point as '
+                                'this camera records it, so input and target are the same surface colour and D '
+                                'cannot trade texture for agreement) or pixels (the paper: the camera\'s pixels)',
+                                choices=('field', 'pixels'))
+    gamut: float = setting(0.5, 'hashgrid with mapper_input field: D also trains on this many random surface '
+                           'colours per pixel, spanning those the field holds, as E records them for the camera '
+                           'at random image positions (the field is smoother than the images: without them D '
+                           'is trained on a narrower gamut than it corrects)', 0.0, 10.0)
     mapper_points: int = setting(80_000, 'pixels per camera for its D', 1, 100_000_000)
-    mapper_epochs: int = setting(20, 'epochs of each D', 1, 100_000)
-    mapper_batch: int = setting(1000, 'batch of each D', 1, 10_000_000)
-    mapper_lr: float = setting(1e-4, 'learning rate of D', 0.0, 1.0)
-    mapper_lr_final: float | None = setting(None, 'decay the learning rate of D to this by the last epoch', 0.0, 1.0)
-    mapper_width: int = setting(128, 'hidden width of D', 1, 4096)
-    mapper_layers: int = setting(8, 'hidden layers of D', 1, 64)
+    mapper_epochs: int = setting(60, 'epochs of each D', 1, 100_000)
+    mapper_batch: int = setting(4096, 'batch of each D', 1, 10_000_000)
+    mapper_lr: float = setting(1e-3, 'learning rate of D', 0.0, 1.0)
+    mapper_lr_final: float | None = setting(1e-4, 'decay the learning rate of D to this by the last epoch (None: '
+                                            'constant)', 0.0, 1.0)
+    mapper_width: int = setting(64, 'hidden width of D (the paper: 128)', 1, 4096)
+    mapper_layers: int = setting(4, 'hidden layers of D (the paper: 8)', 1, 64)
     background: float = setting(0.25, 'pixels without a surface point added to each D, per pixel with one, aimed '
                                       'at the camera\'s affine map onto the reference (0: the paper, D sees the '
                                       'subject only)', 0.0, 4.0)
     reference: str = setting('mean', 'camera whose colours D reproduces, or mean (E averaged over every camera)')
+    anchor: str = setting('auto', 'what makes the reference true: chart (each camera\'s view through its chart '
+                          'colour model before averaging: absolute colour), grey_world (one white balance making '
+                          'the scene average neutral), none; auto: chart when the calibration has a chart model '
+                          'for every camera, else none', choices=('auto', 'chart', 'grey_world', 'none'))
     lut_colors: int = setting(17, 'live form: colour nodes per axis', 2, 65, option='--lut-colours')
     lut_grid: tuple[int, int] = setting((9, 5), 'live form: image nodes (x, y)', 2, 64)
     seed: int = setting(0, 'random seed', 0, 2**31 - 1)
     device: str = setting('auto', 'auto (cuda when present), cpu or cuda', choices=('auto', 'cpu', 'cuda'))
     precision: str = setting('auto', 'auto (bf16 where the device computes it natively), bf16 or fp32',
                              choices=('auto', 'bf16', 'fp32'))
+
+    def field_setting(self, name: str):
+        """``points``, ``field_epochs``, ``field_batch``, ``field_lr`` or ``field_lr_final`` as
+        set, or the chosen field's default (``FIELD_DEFAULTS``)."""
+        value = getattr(self, name)
+        return FIELD_DEFAULTS[self.field][name] if value is None else value
 
     def validate(self) -> None:
         validate(self)

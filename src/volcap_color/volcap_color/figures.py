@@ -23,7 +23,7 @@ def training_figure(path: str | Path, report: dict) -> Path:
     axes[1].legend(fontsize=7, ncol=2)
     for ax in axes:
         ax.set_xlabel('epoch')
-        ax.set_ylabel('RMS error, levels')
+        ax.set_ylabel('sqrt(training loss), levels')
         ax.grid(alpha=0.3, which='both')
     out = save_figure(fig, path)
     plt.close(fig)

@@ -27,13 +27,16 @@ This module is the job (``harmonise``, ``run`` and its report); the networks are
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
+from volcap_core.color import srgb_to_lab
 from volcap_core.errors import BadInput
 from volcap_core.files import write_json
 
@@ -43,43 +46,71 @@ from .correspondence import View, split_frame_sets
 from .figures import training_figure
 from .neural_live import _mapper_error, export_live
 from .neural_models import CHECKPOINT, FIELD_FILE, MANIFEST, Harmonisation
-from .neural_nets import CaptureMapper, ColorField
+from .neural_nets import CaptureMapper, ColorField, HashGridField
 from .neural_samples import SurfaceSamples, training_samples
-from .neural_train import TrainResult, _save_atomic, reference_color, torch_device, train, use_bf16
+from .neural_train import Reference, TrainResult, _Call, _save_atomic, field_color, grey_world_gains, predict, torch_device, train, use_bf16
 
-HELD_OUT = 20_000        # at most this many pixels per camera are kept from D's training to check it
+TEXTURE_KEPT = 0.9       # a D keeping less of its pixels' L* spread or saturated chroma is reported
+HELD_OUT = 20_000        # at most this many pixels per camera are kept from training to check E and D
 
 
-def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> ColorField:
+def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig) -> nn.Module:
     centres = np.unique(samples.centres, axis=0)
     camera_std = np.maximum(centres.std(0), 1e-3) if len(centres) > 1 else np.ones(3, np.float32)
-    return ColorField(samples.points.mean(0), np.maximum(samples.points.std(0), 1e-3), centres.mean(0), camera_std,
-                      cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
+    if cfg.field == 'paper':
+        return ColorField(samples.points.mean(0), np.maximum(samples.points.std(0), 1e-3), centres.mean(0),
+                          camera_std, cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
+    low, high = samples.points.min(0), samples.points.max(0)
+    extent = float(max((high - low).max(), 1e-3)) * 1.02          # a margin so no point sits on the edge
+    start = (low + high) / 2 - extent / 2
+    finest = max(2, math.ceil(extent / (cfg.grid_cell_mm / 1000.0)))
+    return HashGridField(start, extent, centres, cfg.grid_levels, cfg.grid_log2_table, min(16, finest), finest,
+                         cfg.head_width)
 
 
-def _with_background(views: list[View], mine: SurfaceSamples, target: torch.Tensor, count: int,
+def _with_background(views: list[View], inputs: np.ndarray, xy: np.ndarray, target: torch.Tensor, count: int,
                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
     """D's training inputs and targets with ``count`` pixels that have no surface point (the
     background the cleaning removed) added, each aimed at the camera's affine colour map onto
-    E's reference fitted on ``mine``: E knows nothing there, and without them D's output on
+    E's reference fitted on ``inputs``: E knows nothing there, and without them D's output on
     colours and image regions it never saw (the room round the subject) is arbitrary."""
     empty = [(v, np.flatnonzero(v.depth.reshape(-1) <= 0)) for v in views]
     total = sum(len(idx) for _, idx in empty)
     if count <= 0 or total == 0:
-        return mine.colors, mine.xy, target
-    colors, xy = [], []
+        return inputs, xy, target
+    colors, bg_xy = [], []
     for v, idx in empty:
         pick = rng.choice(idx, min(len(idx), max(1, count * len(idx) // total)), replace=False)
         h, w = v.depth.shape
         y, x = np.divmod(pick, w)
         colors.append(v.color.reshape(-1, 3)[pick].astype(np.float32) / 255.0)
-        xy.append(pixel_centres(x, y, w, h))
-    colors, xy = np.concatenate(colors), np.concatenate(xy)
-    design = np.hstack([mine.colors, np.ones((len(mine), 1), np.float32)])
+        bg_xy.append(pixel_centres(x, y, w, h))
+    colors, bg_xy = np.concatenate(colors), np.concatenate(bg_xy)
+    design = np.hstack([inputs, np.ones((len(inputs), 1), np.float32)])
     affine = np.linalg.lstsq(design, target.cpu().numpy(), rcond=None)[0]
     aimed = np.clip(np.hstack([colors, np.ones((len(colors), 1), np.float32)]) @ affine, 0.0, 1.0)
-    return (np.concatenate([mine.colors, colors]), np.concatenate([mine.xy, xy]),
+    return (np.concatenate([inputs, colors]), np.concatenate([xy, bg_xy]),
             torch.cat([target, torch.as_tensor(aimed.astype(np.float32), device=target.device)]))
+
+
+def _with_gamut(field_model: HashGridField, reference: Reference, mine: SurfaceSamples, centre: np.ndarray,
+                rgb: np.ndarray, xy: np.ndarray, target: torch.Tensor, count: int, rng: np.random.Generator,
+                bf16: bool) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+    """D's training pairs with ``count`` more: random linear surface colours spanning those the
+    field holds on this camera's pixels (each channel up to its 99.5th percentile), as E's
+    response records them for this camera at random image positions, aimed at their reference.
+    The field is smoother than the images, so without these D would be trained on a narrower
+    gamut than the pixels it corrects, and greys out the most saturated ones."""
+    device = target.device
+    latent = predict(_Call(field_model.surface_color), (torch.as_tensor(mine.points, device=device),), bf16)
+    top = torch.quantile(latent[:200_000], 0.995, dim=0).clamp_min(1e-3).cpu().numpy()
+    colors = torch.as_tensor((rng.random((count, 3)) * top).astype(np.float32), device=device)
+    where = torch.as_tensor(rng.random((count, 2)).astype(np.float32), device=device)
+    cam = torch.as_tensor(np.asarray(centre, np.float32), device=device).expand(count, 3)
+    with torch.no_grad():
+        recorded = field_model.response(colors, field_model.camera_index(cam), where)
+    return (np.concatenate([rgb, recorded.cpu().numpy()]), np.concatenate([xy, where.cpu().numpy()]),
+            torch.cat([target, reference.from_surface_color(colors)]))
 
 
 def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.device) -> dict | None:
@@ -92,10 +123,58 @@ def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.devi
     return saved
 
 
+def _held_out_split(samples: SurfaceSamples, cameras: list[str], seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(held out, training) sample indices: per camera a tenth of its pixels, at most HELD_OUT,
+    kept from E and from its D; both in a random order."""
+    rng = np.random.default_rng(seed)
+    held, rest = [], []
+    for i in range(len(cameras)):
+        mine = rng.permutation(np.flatnonzero(samples.camera == i))
+        n = min(HELD_OUT, len(mine) // 10)
+        held.append(mine[:n])
+        rest.append(mine[n:])
+    return np.concatenate(held), rng.permutation(np.concatenate(rest))
+
+
+def edge_weights(samples: SurfaceSamples, edge_levels: float, device: torch.device) -> torch.Tensor | None:
+    """E's per-sample weights 1 / (1 + (g / edge_levels)^2) for luminance gradient g, scaled to
+    mean 1 (None for edge_levels 0): at a texture edge a few millimetres of registration or depth
+    error change a pixel's colour completely, and those pixels would otherwise dominate the fit
+    of every camera's response."""
+    if edge_levels <= 0:
+        return None
+    w = 1.0 / (1.0 + (samples.gradient / edge_levels) ** 2)
+    return torch.as_tensor((w / max(w.mean(), 1e-12)).astype(np.float32), device=device)
+
+
+def _resolve_anchor(cfg: HarmoniseConfig, names: list[str], chart_models: dict | None) -> str:
+    have_charts = bool(chart_models) and all(c in chart_models for c in names)
+    if cfg.anchor == 'chart' and not have_charts:
+        missing = [c for c in names if c not in (chart_models or {})]
+        raise BadInput(f'--anchor chart: the calibration has no chart colour model for {", ".join(missing)}')
+    if cfg.anchor == 'auto':
+        return 'chart' if have_charts else 'none'
+    return cfg.anchor
+
+
+def field_error(field_model: nn.Module, samples: SurfaceSamples, cameras: list[str], bf16: bool) -> dict:
+    """E against the cameras' own pixels ``samples`` (pixels it was not trained on): RMS in
+    levels, over all and per camera."""
+    device = next(field_model.parameters()).device
+    t = lambda a: torch.as_tensor(a, device=device)
+    pred = predict(field_model, (t(samples.points), t(samples.centres), t(samples.xy)), bf16).cpu().numpy()
+    sq = ((pred - samples.colors) * 255.0) ** 2
+    per = {c: float(np.sqrt(sq[samples.camera == i].mean())) for i, c in enumerate(cameras)
+           if np.any(samples.camera == i)}
+    return {'rms_levels': float(np.sqrt(sq.mean())) if len(sq) else None, 'per_camera': per, 'pixels': len(samples)}
+
+
 def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseConfig, out_dir: str | Path,
-              resume: bool = False, progress: bool = True) -> Harmonisation:
-    """Train E on every training view, then each camera's D against E's reference colour; the
-    networks, ``manifest.json`` and ``checkpoint.pt`` (during training) go to ``out_dir``."""
+              resume: bool = False, progress: bool = True, chart_models: dict | None = None) -> Harmonisation:
+    """Train E on every training view, then each camera's D onto the reference; the networks,
+    ``manifest.json`` and ``checkpoint.pt`` (during training) go to ``out_dir``. ``chart_models``
+    (camera -> ``ColorModel`` from the calibration's chart) anchor the reference in absolute
+    colour (``cfg.anchor``)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if cfg.reference != 'mean' and cfg.reference not in cameras:
@@ -111,8 +190,12 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     missing = [c for c in cameras if c not in centres]
     if missing:
         raise BadInput(f'{", ".join(missing)} are in no training frame set')
+    names = cameras if cfg.reference == 'mean' else [cfg.reference]
+    anchor = _resolve_anchor(cfg, names, chart_models)
 
-    samples = training_samples(train_sets, cameras, cfg.points, cfg.seed)
+    pixels = training_samples(train_sets, cameras, None, cfg.seed)      # every pixel with depth
+    held, rest = _held_out_split(pixels, cameras, cfg.seed)
+    samples = pixels.select(rest[:cfg.field_setting('points')])
     t = lambda a: torch.as_tensor(a, device=device)
     field_model = _field_for(samples, cfg).to(device)
     done = _finished(out_dir / FIELD_FILE, cfg, resume, device)
@@ -120,26 +203,26 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         field_model.load_state_dict(done['state'])
         field_result = TrainResult(**done['result'])
     else:
-        field_result = train(field_model, (t(samples.points), t(samples.centres)), t(samples.colors),
-                             epochs=cfg.field_epochs, batch=cfg.field_batch, lr=cfg.field_lr,
-                             lr_final=cfg.field_lr_final, seed=cfg.seed, bf16=bf16, label='E (colour field)',
-                             checkpoint=checkpoint, settings=asdict(cfg), progress=progress)
+        field_result = train(field_model, (t(samples.points), t(samples.centres), t(samples.xy)), t(samples.colors),
+                             epochs=cfg.field_setting('field_epochs'), batch=cfg.field_setting('field_batch'),
+                             lr=cfg.field_setting('field_lr'), lr_final=cfg.field_setting('field_lr_final'),
+                             seed=cfg.seed, bf16=bf16, label='E (colour field)', checkpoint=checkpoint,
+                             settings=asdict(cfg), progress=progress,
+                             weights=edge_weights(samples, cfg.edge_levels, device), robust=cfg.robust_levels / 255.0)
         _save_atomic({'state': field_model.state_dict(), 'config': asdict(cfg), 'result': asdict(field_result)},
                      out_dir / FIELD_FILE)
     field_model.eval()
+    held_samples = pixels.select(held)
+    e_error = field_error(field_model, held_samples, cameras, bf16)
 
-    names = cameras if cfg.reference == 'mean' else [cfg.reference]
-    ref_centres = np.stack([centres[c] for c in names])
-    mappers, mapper_results, fits, held_out = {}, {}, {}, {}
+    reference = Reference(field_model, np.stack([centres[c] for c in names]), bf16,
+                          [chart_models[c] for c in names] if anchor == 'chart' else None)
+    if anchor == 'grey_world':
+        reference.gains = grey_world_gains(reference, t(samples.points[:200_000]))
+    mappers, mapper_results, fits, d_error, texture = {}, {}, {}, {}, {}
     for i, cam in enumerate(cameras):
-        # every pixel with depth, shuffled: a tenth (at most HELD_OUT) is kept back to check D
-        # against E, D trains on up to mapper_points of the rest
         own = [v for views in train_sets for v in views if v.name == cam]
-        pixels = training_samples([own], cameras, None, 0)
-        rng = np.random.default_rng(cfg.seed + 1 + i)
-        order = rng.permutation(len(pixels))
-        n_held = min(HELD_OUT, len(pixels) // 10)
-        mine = pixels.select(order[n_held:n_held + cfg.mapper_points])
+        mine = pixels.select(rest[pixels.camera[rest] == i][:cfg.mapper_points])
         torch.manual_seed(cfg.seed + 1 + i)
         mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers).to(device)
         done = _finished(out_dir / f'{cam}.mapper.pt', cfg, resume, device)
@@ -147,8 +230,13 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
             mapper.load_state_dict(done['state'])
             mapper_results[cam] = TrainResult(**done['result'])
         else:
-            target = reference_color(field_model, t(mine.points), ref_centres, bf16)
-            rgb, xy, target = _with_background(own, mine, target, int(cfg.background * len(mine)), rng)
+            rng = np.random.default_rng(cfg.seed + 1 + i)
+            target = reference(t(mine.points))
+            inputs = mapper_inputs(field_model, mine, centres[cam], cfg.mapper_input, bf16)
+            rgb, xy, target = _with_background(own, inputs, mine.xy, target, int(cfg.background * len(mine)), rng)
+            if cfg.mapper_input == 'field' and isinstance(field_model, HashGridField) and cfg.gamut > 0:
+                rgb, xy, target = _with_gamut(field_model, reference, mine, centres[cam], rgb, xy, target,
+                                              int(cfg.gamut * len(mine)), rng, bf16)
             mapper_results[cam] = train(mapper, (t(rgb), t(xy)), target, epochs=cfg.mapper_epochs,
                                         batch=cfg.mapper_batch, lr=cfg.mapper_lr, lr_final=cfg.mapper_lr_final,
                                         seed=cfg.seed + 1 + i, bf16=bf16, label=f'D {cam}', checkpoint=checkpoint,
@@ -158,16 +246,57 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         mapper.eval()
         mappers[cam] = mapper
         fits[cam] = len(mine)
-        if n_held:
-            held_out[cam] = _mapper_error(field_model, mapper, pixels.select(order[:n_held]), ref_centres, bf16)
+        check = held_samples.select(held_samples.camera == i)
+        if len(check):
+            d_error[cam] = _mapper_error(field_model, mapper, check, reference, cfg.mapper_input, bf16)
+            # what D makes of the camera's own pixels against what the reference says they are
+            texture[cam] = texture_kept(reference(t(check.points)).cpu().numpy(),
+                                        predict(mapper, (t(check.colors), t(check.xy)), bf16).cpu().numpy())
     checkpoint.unlink(missing_ok=True)
     report = {
-        'cameras': cameras, 'reference': cfg.reference, 'device': str(device), 'bf16': bf16,
+        'cameras': cameras, 'reference': cfg.reference, 'anchor': anchor, 'device': str(device), 'bf16': bf16,
+        'anchor_gains': None if reference.gains is None else reference.gains.tolist(),
         'threads': torch.get_num_threads(), 'field_samples': len(samples), 'mapper_samples': fits,
-        'field': asdict(field_result), 'mappers': {c: asdict(r) for c, r in mapper_results.items()},
-        'mapper_error': held_out,
+        'field': asdict(field_result), 'field_error': e_error, 'mappers': {c: asdict(r) for c, r in
+                                                                           mapper_results.items()},
+        'mapper_error': d_error, 'texture': texture,
         'centres': {c: v.tolist() for c, v in centres.items()}, 'config': asdict(cfg)}
     return Harmonisation(cameras, centres, field_model, mappers, cfg.reference, cfg, device, bf16, report)
+
+
+def mapper_inputs(field_model: nn.Module, samples: SurfaceSamples, centre: np.ndarray, kind: str, bf16: bool
+                  ) -> np.ndarray:
+    """What D is trained to map: E's colour of each point as this camera records it at its pixel
+    (``field``), or the pixel's own colour (``pixels``, the paper)."""
+    if kind == 'pixels':
+        return samples.colors
+    device = next(field_model.parameters()).device
+    return field_color(field_model, torch.as_tensor(samples.points, device=device), centre, bf16,
+                       torch.as_tensor(samples.xy, device=device)).cpu().numpy()
+
+
+def texture_kept(before: np.ndarray, after: np.ndarray, saturated: float = 25.0) -> dict:
+    """How much texture ``after`` keeps of ``before`` (sRGB in [0, 1], the same pixels; in
+    ``harmonise``: E's reference colours of a camera's held-out pixels, and D's output on them):
+    the mean CIELAB chroma of the pixels saturated in ``before`` (C* >= ``saturated``) and the
+    spread (standard deviation) of L*, in both, and their ratios. The reference is smoother
+    than the images, so a D that keeps the texture scores at or above 1."""
+    lab_b, lab_a = srgb_to_lab(np.asarray(before, np.float64)), srgb_to_lab(np.asarray(after, np.float64))
+    chroma_b, chroma_a = np.hypot(lab_b[:, 1], lab_b[:, 2]), np.hypot(lab_a[:, 1], lab_a[:, 2])
+    sat = chroma_b >= saturated
+    out = {'lightness_spread_before': float(lab_b[:, 0].std()), 'lightness_spread_after': float(lab_a[:, 0].std()),
+           'saturated_pixels': int(sat.sum())}
+    out['lightness_kept'] = out['lightness_spread_after'] / max(out['lightness_spread_before'], 1e-9)
+    if sat.any():
+        out.update(chroma_before=float(chroma_b[sat].mean()), chroma_after=float(chroma_a[sat].mean()))
+        out['chroma_kept'] = out['chroma_after'] / out['chroma_before']
+    return out
+
+
+def chart_models(calibration) -> dict:
+    """The calibration's chart colour models by camera (cameras without one are left out)."""
+    from volcap_core.color import ColorModel
+    return {c: ColorModel.from_dict(cam.color) for c, cam in calibration.cameras.items() if cam.color}
 
 
 @dataclass
@@ -178,15 +307,24 @@ class HarmoniseReport:
 
     def lines(self) -> list[str]:
         m = self.manifest
-        out = [f"E: {m['field_samples']} samples, {len(m['field']['losses'])} epochs, final RMS "
-               f"{255 * m['field']['losses'][-1] ** 0.5:.2f} levels, {m['field']['seconds']:.0f} s "
-               f"({m['device']}{', bf16' if m['bf16'] else ''})"]
+        held = m['field_error']['rms_levels']
+        out = [f"E ({m['config']['field']}): {m['field_samples']} samples, {len(m['field']['losses'])} epochs, "
+               f"final loss {m['field']['losses'][-1]:.2e}, held-out pixels RMS "
+               + ('-' if held is None else f'{held:.2f}') + f" levels, {m['field']['seconds']:.0f} s "
+               f"({m['device']}{', bf16' if m['bf16'] else ''}); reference: {m['reference']}, anchor {m['anchor']}"]
         for c in self.cameras:
-            d, e = m['mapper_error'].get(c), m['export_error'].get(c)
+            d, e, k = m['mapper_error'].get(c), m['export_error'].get(c), m['texture'].get(c, {})
             if d and e:
                 out.append(f'{c}: D vs E\'s reference on held-out pixels RMS {d["rms_levels"]:.2f} levels; live LUT '
                            f'vs D mean {e["mean_levels"]:.2f}, p99 {e["p99_levels"]:.0f}, max {e["max_levels"]:.0f} '
-                           'levels')
+                           f'levels; texture kept: L* spread {k.get("lightness_kept", 0):.0%}, chroma '
+                           + (f'{k["chroma_kept"]:.0%}' if 'chroma_kept' in k else '-'))
+        for c in self.cameras:
+            k = m['texture'].get(c, {})
+            if min(k.get('lightness_kept', 1.0), k.get('chroma_kept', 1.0)) < TEXTURE_KEPT:
+                out.append(f'WARNING: {c}: D keeps {k["lightness_kept"]:.0%} of the lightness spread and '
+                           f'{k.get("chroma_kept", 1.0):.0%} of the saturated chroma the reference gives its pixels: '
+                           'it is flattening texture (is E converged? see field_error in the manifest)')
         out.append(f'wrote {self.out_dir}/ (manifest.json, field.pt, <camera>.mapper.pt, <camera>.lut.npz, '
                    f'training.png) in {m["seconds"]["total"]:.0f} s')
         return out
@@ -194,17 +332,19 @@ class HarmoniseReport:
 
 def run(sets: list[list[View]], cameras: list[str], cfg: HarmoniseConfig, out_dir: str | Path,
         train_sets: str = 'even', resume: bool = False, progress: bool = True, sources: dict | None = None,
-        views_seconds: float = 0.0) -> HarmoniseReport:
+        views_seconds: float = 0.0, chart_models: dict | None = None) -> HarmoniseReport:
     """`volcap harmonise` on views of capture frame sets: train (on the 1st, 3rd, ... set with
     ``train_sets='even'``, the sets the colour evaluation fits on, so it scores D on sets it never
     saw; or on all), export the live form checked on the other sets, write the manifest (with
-    ``sources``, e.g. the bag and calibration) and the training figure."""
+    ``sources``, e.g. the bag and calibration) and the training figure. ``chart_models``:
+    ``chart_models(calibration)``."""
     if train_sets not in ('even', 'all'):
         raise BadInput(f"train_sets must be 'even' or 'all', got {train_sets!r}")
     cfg.validate()
     trained, checked = split_frame_sets(len(sets)) if train_sets == 'even' else (list(range(len(sets))),) * 2
     t1 = time.perf_counter()
-    harm = harmonise([sets[i] for i in trained], cameras, cfg, out_dir, resume=resume, progress=progress)
+    harm = harmonise([sets[i] for i in trained], cameras, cfg, out_dir, resume=resume, progress=progress,
+                     chart_models=chart_models)
     t2 = time.perf_counter()
     live = export_live(harm, out_dir, [v for i in checked for v in sets[i]], progress=progress)
     t3 = time.perf_counter()

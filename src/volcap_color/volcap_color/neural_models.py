@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from .config import HarmoniseConfig
-from .neural_nets import CaptureMapper, ColorField
+from .neural_nets import CaptureMapper, ColorField, HashGridField
 from .neural_train import predict, torch_device, use_bf16
 
 CHECKPOINT = 'checkpoint.pt'
@@ -28,7 +29,7 @@ class Harmonisation:
     """What ``harmonise`` trained: E, one D per camera and the reference they map to."""
     cameras: list[str]
     centres: dict[str, np.ndarray]
-    field: ColorField
+    field: nn.Module                # ColorField (paper) or HashGridField
     mappers: dict[str, CaptureMapper]
     reference: str
     config: HarmoniseConfig
@@ -46,6 +47,16 @@ class Harmonisation:
         return predict(self.mappers[camera], (t(rgb), t(xy)), self.bf16).cpu().numpy().astype(np.float64)
 
 
+def field_from_state(state: dict, cfg: HarmoniseConfig) -> nn.Module:
+    """An untrained E of the layout ``state`` was saved from (``cfg.field``), ready to load it."""
+    if cfg.field == 'paper':
+        return ColorField(state['point_mean'], state['point_std'], state['camera_mean'], state['camera_std'],
+                          cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies)
+    resolution = state['grid.resolution']
+    return HashGridField(state['point_min'], float(state['point_extent']), state['centres'], cfg.grid_levels,
+                         cfg.grid_log2_table, int(resolution[0]), int(resolution[-1]), cfg.head_width)
+
+
 def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisation:
     """The networks ``harmonise`` wrote into ``models_dir`` (with its manifest)."""
     models_dir = Path(models_dir)
@@ -56,16 +67,18 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     # folders written before identifiers were spelt "color" say lut_colours
     cfg_dict = {k.replace('colour', 'color'): v for k, v in manifest['config'].items()}
     cfg_dict['lut_grid'] = tuple(cfg_dict['lut_grid'])
+    # folders written before the hash grid field have the paper's E and D without the skip
+    earlier = 'field' not in cfg_dict
+    cfg_dict.setdefault('field', 'paper')
     cfg = HarmoniseConfig(**cfg_dict)
     dev = torch_device(device)
     state = torch.load(models_dir / FIELD_FILE, map_location=dev, weights_only=False)['state']
-    field_model = ColorField(state['point_mean'], state['point_std'], state['camera_mean'], state['camera_std'],
-                             cfg.field_width, cfg.point_frequencies, cfg.camera_frequencies).to(dev)
+    field_model = field_from_state(state, cfg).to(dev)
     field_model.load_state_dict(state)
     field_model.eval()
     mappers = {}
     for cam in manifest['cameras']:
-        m = CaptureMapper(cfg.mapper_width, cfg.mapper_layers).to(dev)
+        m = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, skip=not earlier).to(dev)
         m.load_state_dict(torch.load(models_dir / f'{cam}.mapper.pt', map_location=dev, weights_only=False)['state'])
         m.eval()
         mappers[cam] = m

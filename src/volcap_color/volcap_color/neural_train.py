@@ -13,10 +13,9 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from volcap_core.color import linear_to_srgb, srgb_to_linear
 from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write
-
-from .neural_nets import ColorField
 
 
 def torch_device(name: str) -> torch.device:
@@ -59,14 +58,18 @@ def _save_atomic(obj, path: Path) -> None:
 
 def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tensor, *, epochs: int, batch: int,
           lr: float, seed: int, bf16: bool, label: str, lr_final: float | None = None,
-          checkpoint: Path | None = None, settings: dict | None = None, progress: bool = True) -> TrainResult:
-    """Adam on the MSE of ``model(*inputs)`` against ``target``, shuffled afresh each epoch from
+          checkpoint: Path | None = None, settings: dict | None = None, progress: bool = True,
+          weights: torch.Tensor | None = None, robust: float = 0.0) -> TrainResult:
+    """Adam on the MSE of ``model(*inputs)`` against ``target`` (weighted per sample by
+    ``weights``, mean 1, where given; with ``robust`` > 0 the Cauchy loss
+    robust^2 log(1 + (r / robust)^2) of each residual r instead of r^2), shuffled afresh each epoch from
     ``seed``; the learning rate decays exponentially from ``lr`` to ``lr_final`` over the epochs
     (constant for None). With ``checkpoint``, the state after each epoch is saved there under
     ``label`` with ``settings``, and a checkpoint of the same label is resumed from (a clear error
     if its settings differ)."""
     device = target.device
-    optimiser = torch.optim.Adam(model.parameters(), lr=lr)
+    groups = model.optimiser_groups() if hasattr(model, 'optimiser_groups') else [{'params': list(model.parameters())}]
+    optimiser = torch.optim.Adam(groups, lr=lr)
     gamma = (lr_final / lr) ** (1.0 / max(epochs, 1)) if lr_final else 1.0
     schedule = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
     result, start = TrainResult(), 0
@@ -94,7 +97,10 @@ def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tens
             idx = order[s * batch:(s + 1) * batch]
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 out = model(*(x[idx] for x in inputs))
-            loss = torch.mean((out.float() - target[idx]) ** 2)
+            sq = (out.float() - target[idx]) ** 2
+            if robust > 0:
+                sq = robust ** 2 * torch.log1p(sq / robust ** 2)
+            loss = torch.mean(sq if weights is None else sq * weights[idx, None])
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
@@ -125,11 +131,84 @@ def predict(model: nn.Module, inputs: tuple[torch.Tensor, ...], bf16: bool, chun
     return torch.cat(out) if out else torch.zeros((0, 3), device=device)
 
 
-def reference_color(field_model: ColorField, points: torch.Tensor, centres: np.ndarray, bf16: bool
-                     ) -> torch.Tensor:
-    """E's colour of ``points`` as seen from each of ``centres`` (one row: that camera), averaged."""
-    total = torch.zeros((len(points), 3), device=points.device)
-    for c in centres:
-        cam = torch.as_tensor(np.asarray(c, np.float32), device=points.device).expand(len(points), 3)
-        total += predict(field_model, (points, cam), bf16)
-    return total / len(centres)
+# Where the reference is looked at in every camera's image: the centre, where lenses have no
+# fall-off, so vignetting is not part of the reference
+CENTRE_XY = (0.5, 0.5)
+
+
+def field_color(field_model: nn.Module, points: torch.Tensor, centre, bf16: bool, xy: torch.Tensor | None = None
+                ) -> torch.Tensor:
+    """E's colour of ``points`` as the camera at ``centre`` records them at ``xy`` (default: the image centre)."""
+    cam = torch.as_tensor(np.asarray(centre, np.float32), device=points.device).expand(len(points), 3)
+    if xy is None:
+        xy = torch.as_tensor(CENTRE_XY, dtype=torch.float32, device=points.device).expand(len(points), 2)
+    return predict(field_model, (points, cam, xy), bf16)
+
+
+class _Call(nn.Module):
+    """A function as a module, for ``predict``'s chunking."""
+
+    def __init__(self, fn):
+        super().__init__()
+        self.fn = fn
+
+    def forward(self, *args):
+        return self.fn(*args)
+
+
+@dataclass
+class Reference:
+    """The colour every D maps its camera onto: E's colour of the point as each of ``centres``
+    records it at its image centre, averaged; with ``chart_models`` (one per centre, sRGB ->
+    chart-corrected sRGB) each camera's view is corrected by its chart model first (absolute
+    colour); with ``gains`` a white balance in linear light is applied to the average."""
+    field_model: nn.Module
+    centres: np.ndarray
+    bf16: bool
+    chart_models: list | None = None
+    gains: np.ndarray | None = None
+
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        return self._combine(self._views(points), points.device)
+
+    def from_surface_color(self, latent: torch.Tensor) -> torch.Tensor:
+        """The reference of linear surface colours ``latent`` (a ``HashGridField``'s shared field)."""
+        return self._combine(self._recorded(latent), latent.device)
+
+    def _combine(self, views: list[torch.Tensor], device: torch.device) -> torch.Tensor:
+        total = torch.zeros((len(views[0]), 3), device=device)
+        for i, rgb in enumerate(views):
+            if self.chart_models is not None:
+                rgb = torch.as_tensor(self.chart_models[i].apply(rgb.cpu().numpy()).astype(np.float32),
+                                      device=device)
+            total += rgb
+        mean = total / len(self.centres)
+        if self.gains is None:
+            return mean
+        balanced = np.clip(srgb_to_linear(mean.cpu().numpy()) * self.gains, 0.0, 1.0)
+        return torch.as_tensor(linear_to_srgb(balanced).astype(np.float32), device=device)
+
+    def _views(self, points: torch.Tensor):
+        """E's colour of ``points`` as each reference camera records it at its image centre; a
+        field with a shared surface colour (``HashGridField``) computes it once for all cameras."""
+        surface = getattr(self.field_model, 'surface_color', None)
+        if surface is None:
+            return [field_color(self.field_model, points, c, self.bf16) for c in self.centres]
+        return self._recorded(predict(_Call(surface), (points,), self.bf16))
+
+    def _recorded(self, latent: torch.Tensor) -> list[torch.Tensor]:
+        model = self.field_model
+        xy = torch.as_tensor(CENTRE_XY, dtype=torch.float32, device=latent.device).expand(len(latent), 2)
+        out = []
+        for c in self.centres:
+            cam = torch.as_tensor(np.asarray(c, np.float32), device=latent.device).expand(len(latent), 3)
+            out.append(predict(_Call(lambda a, k: model.response(a, model.camera_index(k), xy[:len(a)])),
+                               (latent, cam), self.bf16))
+        return out
+
+
+def grey_world_gains(reference: Reference, points: torch.Tensor) -> np.ndarray:
+    """Per-channel gains in linear light that make the reference's average over ``points``
+    neutral at the same mean level: a cast every camera shares is removed (grey world)."""
+    mean = srgb_to_linear(reference(points).cpu().numpy().astype(np.float64)).mean(0)
+    return (mean.mean() / np.maximum(mean, 1e-6)).astype(np.float32)
