@@ -269,3 +269,50 @@ def test_models_written_before_the_color_spelling_still_load(trained, tmp_path):
     assert loaded.config == harm.config
     rgb, xy = np.full((4, 3), 0.5, np.float32), np.full((4, 2), 0.5, np.float32)
     assert np.allclose(loaded.map_colors('cam1', rgb, xy), harm.map_colors('cam1', rgb, xy), atol=1e-5)
+
+
+def test_the_hash_grid_field_trains_deterministically_and_resumes(tmp_path):
+    """The hash grid's scatter-add backward is deterministic on the CPU: two runs, and a run
+    resumed from its checkpoint, give the same weights."""
+    from volcap_color.neural_nets import HashGridField
+    rng = np.random.default_rng(1)
+    points = torch.as_tensor(rng.random((2000, 3), dtype=np.float32))
+    centres = np.array([[2.0, 0, 0], [0, 2.0, 0]], np.float32)
+    cams = torch.as_tensor(centres[rng.integers(0, 2, 2000)])
+    xy = torch.as_tensor(rng.random((2000, 2), dtype=np.float32))
+    target = torch.as_tensor(rng.random((2000, 3), dtype=np.float32))
+
+    def run(epochs, checkpoint=None):
+        torch.manual_seed(5)
+        field = HashGridField(np.zeros(3), 1.0, centres, levels=4, log2_table=10, coarsest=4, finest=32, width=16)
+        train(field, (points, cams, xy), target, epochs=epochs, batch=256, lr=1e-2, seed=3, bf16=False,
+              label='E test', checkpoint=checkpoint, progress=False)
+        return field
+    a, b = run(3), run(3)
+    assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), b.state_dict().values()))
+    ck = tmp_path / 'checkpoint.pt'
+    run(1, ck)
+    c = run(3, ck)
+    assert all(torch.equal(p, q) for p, q in zip(a.state_dict().values(), c.state_dict().values()))
+
+
+def test_hash_grid_interpolates_trilinearly_like_scipy():
+    """A level whose grid fits its table is indexed densely: its encoding is the trilinear
+    interpolation of the table laid out as the grid (checked against scipy); a finer level is
+    hashed into its table (Instant-NGP's primes), every index within it."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from volcap_color.neural_nets import HashGrid
+    grid = HashGrid(levels=2, log2_table=12, coarsest=8, finest=64, features=2)
+    with torch.no_grad():
+        grid.table.copy_(torch.as_tensor(np.random.default_rng(2).normal(size=grid.table.shape).astype(np.float32)))
+    assert grid.dense.tolist() == [True, False]
+    points = np.random.default_rng(3).random((500, 3)).astype(np.float32)
+    with torch.no_grad():
+        encoded = grid(torch.as_tensor(points)).numpy()
+    dense = grid.table.detach().numpy()[:9 ** 3].reshape(9, 9, 9, 2)       # [z][y][x]: index x + 9 y + 81 z
+    axis = np.arange(9)
+    for f in range(2):
+        expected = RegularGridInterpolator((axis, axis, axis), dense[..., f])(points[:, ::-1] * 8)
+        assert np.allclose(encoded[:, f], expected, atol=1e-5)
+    assert np.isfinite(encoded[:, 2:]).all() and np.abs(encoded[:, 2:]).max() > 0
