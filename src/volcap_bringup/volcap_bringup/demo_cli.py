@@ -41,6 +41,8 @@ def cmd_demo(args) -> int:
     from volcap_core.bag_reader import BagReader
     from volcap_core.files import write_json
     from volcap_eval.fusion import evaluate_fusion
+    from volcap_eval.stability import evaluate_stability
+    from volcap_fusion.stability import format_stability
     from volcap_studio.session import GroundTruth, synthesize
     from volcap_studio.studio import SynthConfig
 
@@ -106,6 +108,9 @@ def cmd_demo(args) -> int:
     print(f'{fusion["frames"]} frames: accuracy {fusion["accuracy_mm"]:.2f} mm, completeness '
           f'{100 * fusion["completeness"]:.1f} % of the observable surface, '
           f'{100 * (fusion["completeness_feet"] or 0):.1f} % of its lowest 15 cm (feet)')
+    stability = evaluate_stability(run, bag, frames=demo.scored_frames, progress=False)
+    write_json(out / 'stability.json', stability)
+    print(f'{format_stability(stability)} ({stability["scored"]}): volcap eval stability -> {out / "stability.json"}')
     print(f'play it: volcap view {run / "frames"}')
     print(f'meshes: {run / "frames"} (PLY + GLB per frame set)  renders: {run / "renders"} '
           f'(raw vs cleaned: {run / "renders" / "raw_vs_clean.png"})  metrics: {run / "metrics.json"}')

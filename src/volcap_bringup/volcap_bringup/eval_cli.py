@@ -110,6 +110,19 @@ def cmd_eval_fusion(args) -> int:
     return 0
 
 
+def cmd_eval_stability(args) -> int:
+    from volcap_eval.stability import evaluate_stability
+    from volcap_fusion.stability import format_stability
+    if args.first < 0 or (args.frames is not None and args.frames < 2):
+        raise BadInput('--first must be 0 or more and --frames 2 or more')
+    report = evaluate_stability(args.dir, args.bag, args.first, args.frames, progress=not args.quiet)
+    print(f'{format_stability(report)} ({report["scored"]})')
+    if args.json:
+        write_json(args.json, report)
+        print(f'wrote {args.json}')
+    return 0
+
+
 def add_parsers(esub) -> None:
     """The verbs under `volcap eval`."""
     ed = esub.add_parser('depth', help='depth cleaning on a synthetic bag: raw, paper Eq. 5 and ours')
@@ -176,4 +189,14 @@ def add_parsers(esub) -> None:
     e.add_argument('--frames', type=int, default=None, help='score only the first N frames')
     e.add_argument('--quiet', action='store_true')
     e.set_defaults(func=cmd_eval_fusion)
+    st = esub.add_parser('stability', help='frame-to-frame change of a fused sequence where the subject holds still: '
+                                           'surface jitter, colour flicker, surface appearing or vanishing')
+    st.add_argument('dir', help='a volcap run output folder')
+    st.add_argument('bag', nargs='?', help='the synthetic bag it was made from (scores only the parts its ground '
+                                           'truth holds still); without it every point is scored')
+    st.add_argument('--first', type=int, default=0, help='first fused frame scored (a real take\'s still part)')
+    st.add_argument('--frames', type=int, default=None, help='score only N frames from --first')
+    st.add_argument('--json', help='write the report here')
+    st.add_argument('--quiet', action='store_true')
+    st.set_defaults(func=cmd_eval_stability)
 

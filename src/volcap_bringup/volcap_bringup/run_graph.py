@@ -28,6 +28,8 @@ from .graph import NodeSpec, RunConfig, camera_nodes, rig_graph, stream_remaps
 from .probe import RendererProbe
 from .session import GraphSession, spec_name
 
+STABILITY_FRAMES = 30      # metrics.json scores the frame-to-frame change of this many first frames (0.2 s a pair)
+
 
 def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, cfg: RunConfig, played: list[str],
                      layout: dict[str, dict[str, str]]) -> list[NodeSpec]:
@@ -193,6 +195,10 @@ class RunReport:
             out.append(m['recording_failure'])
         if m.get('bag_damage'):
             out.append(f'damaged bag, every readable frame set used: {m["bag_damage"]}')
+        if m.get('stability'):
+            from volcap_fusion.stability import format_stability
+            out.append(f'{format_stability(m["stability"])} (the first {m["stability"]["first_frames"]} frames; '
+                       'every change counts, the subject\'s motion too)')
         if 'figures_error' in m:
             out.append(f'no figures: {m["figures_error"]}')
         if 'raw_vs_clean_error' in m:
@@ -218,12 +224,24 @@ def run(cfg: RunConfig) -> RunReport:
     poses = {c: T_frame_world @ calibration.T_world_color(c) for c in cameras}
     on_floor = calibration.studio is not None and calibration.studio.details.get('source') == 'floor'
 
+    if len(frames) >= 2:
+        metrics['stability'] = _stability(out / 'frames', frames[:STABILITY_FRAMES])
     try:      # the figures are extra: on a full disk the sequence and metrics.json still count
         _figures(cfg, out, frames, poses, on_floor, metrics)
     except OSError as e:
         metrics['figures_error'] = str(e)
     write_json(out / 'metrics.json', metrics)
     return RunReport(metrics, out)
+
+
+def _stability(frames_dir: Path, frames: list[dict]) -> dict:
+    """Frame-to-frame change of the first fused frames (``volcap_fusion.stability``): with no
+    ground truth every change counts, the subject's own motion too."""
+    from volcap_fusion.sequence import read_ply
+    from volcap_fusion.stability import sequence_stability
+    report = sequence_stability(read_ply(frames_dir / f['ply']) for f in frames)
+    report['first_frames'] = len(frames)
+    return report
 
 
 def _figures(cfg: RunConfig, out: Path, frames: list[dict], poses: dict, on_floor: bool, metrics: dict) -> None:

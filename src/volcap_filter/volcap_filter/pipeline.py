@@ -1,6 +1,7 @@
 """One camera's depth cleaning, stage by stage: flying pixels and range gate on the raw grid,
 registration into the colour camera, foreground mask with a depth-aware boundary band,
-optional temporal smoothing, and the coloured point cloud (optionally outlier-filtered)."""
+temporal averaging where the scene holds still (``temporal``), and the coloured point cloud
+(optionally outlier-filtered)."""
 from __future__ import annotations
 
 import time
@@ -15,6 +16,7 @@ from volcap_core.settings import setting, validate
 from .flying import FlyingPixelConfig, fill_lattice_gaps, flying_pixels, paper_flying_pixels
 from .mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
 from .registration import DepthRegistration, Registered
+from .temporal import TemporalFilter
 
 FLYING_METHODS = ('volcap', 'paper_all', 'paper_horizontal', 'none')
 MASK_MODES = ('clean_plate', 'chroma', 'none')
@@ -33,7 +35,9 @@ class DepthFilterConfig:
                                       1.0, 255.0)
     boundary_px: int = setting(2, 'mask boundary band (output px) where depth behind the inside is dropped', 0, 20)
     boundary_tolerance: float = setting(0.03, 'how far behind the nearby inside band depth may lie (m)', 0.0, 1.0)
-    temporal_alpha: float = setting(0.0, 'temporal EMA weight of a new frame on stable pixels (0 = off)', 0.0, 1.0)
+    temporal_alpha: float = setting(0.1, 'where the scene holds still, depth and colour are averaged over the frames since '
+                                    'it last moved, up to 1/alpha of them (0 = off)', 0.0, 1.0)
+    temporal_window: int = setting(15, 'window (px) over which the mean depth change tells motion from noise', 3, 63)
     sor_neighbors: int = setting(0, 'statistical outlier removal neighbours on the cloud (0 = off)', 0, 100)
     sor_std_ratio: float = setting(2.5, 'statistical outlier removal threshold (std ratios)', 0.1, 10.0)
 
@@ -88,7 +92,8 @@ class DepthCleaner:
         self.cfg = cfg or DepthFilterConfig()
         self.cfg.validate()
         self.background = BackgroundModel()
-        self._temporal = None
+        self.temporal = TemporalFilter(self.cfg.temporal_alpha, self.cfg.temporal_window, self.cfg.flying.noise_base,
+                                       self.cfg.flying.noise_quad) if self.cfg.temporal_alpha > 0 else None
         self._out_rays = registration.output.pixel_rays().astype(np.float32)
 
     @property
@@ -102,7 +107,6 @@ class DepthCleaner:
         self.background.add(color, registered)
 
     def process(self, color: np.ndarray, depth_m: np.ndarray) -> CleanResult:
-        cfg = self.cfg
         self._check(color, depth_m)
         t = {}
         t0 = time.perf_counter()
@@ -123,8 +127,10 @@ class DepthCleaner:
             keep &= self._boundary_keep(fg, reg.depth)
         clean = np.where(keep, reg.depth, np.float32(0.0))
         t['mask'] = _ms(t0)
-        if cfg.temporal_alpha > 0:
-            clean = self._smooth(clean)
+        if self.temporal is not None:
+            t0 = time.perf_counter()
+            clean, color, _ = self.temporal.update(clean, color)
+            t['temporal'] = _ms(t0)
         return CleanResult(clean, mask, flying, reg, color, t)
 
     def points(self, result: CleanResult) -> tuple[np.ndarray, np.ndarray]:
@@ -189,20 +195,6 @@ class DepthCleaner:
         wide = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * r + 3, 4 * r + 3))
         reference = cv2.dilate(inside_depth, wide)   # farthest inside surface nearby
         return inside | (band & (depth <= reference + self.cfg.boundary_tolerance) & (reference > 0))
-
-    def _smooth(self, depth: np.ndarray) -> np.ndarray:
-        """Exponential average of pixels whose depth stays within the noise of the average
-        (static background); anything that moves restarts at the new value."""
-        if self._temporal is None or self._temporal.shape != depth.shape:
-            self._temporal = depth.copy()
-            return depth
-        prev = self._temporal
-        f = self.cfg.flying
-        tol = 3.0 * (f.noise_base + f.noise_quad * depth ** 2)
-        stable = (depth > 0) & (prev > 0) & (np.abs(depth - prev) <= tol)
-        a = np.float32(self.cfg.temporal_alpha)
-        self._temporal = np.where(stable, prev + a * (depth - prev), depth).astype(np.float32)
-        return self._temporal
 
 
 def sanitise_depth(depth_m: np.ndarray) -> np.ndarray:

@@ -188,7 +188,8 @@ class CleanPlateSession:
             result = cleaner.process(color, depth)
         except ValueError as e:   # conversion errors, sizes that disagree with camera_info, empty depth
             return [Outcome('failed', f'{self.camera}: frame skipped: {e}', pair)]
-        return [Outcome('cleaned', pair=pair, result=result, cleaner=cleaner, color=color, depth=depth)]
+        # the colour the depth was cleaned with: averaged where the scene held still (temporal)
+        return [Outcome('cleaned', pair=pair, result=result, cleaner=cleaner, color=result.source_color, depth=depth)]
 
     def _cleaner(self, pair: FramePair) -> DepthCleaner:
         color_model, depth_model = self.models['color'], self.models['depth']

@@ -124,8 +124,8 @@ class CameraPipeline:
         cleaned = None
         for o in outcomes:
             if o.kind == 'cleaned':
-                color = self.correct(frame.color)
-                cleaned = CleanedCamera(self.camera, frame, o.result, o.cleaner, frame.color if color is None else color)
+                color = self.correct(o.color)
+                cleaned = CleanedCamera(self.camera, frame, o.result, o.cleaner, o.color if color is None else color)
         return outcomes, cleaned
 
     def correct(self, color: np.ndarray, keep: bool = True) -> np.ndarray | None:

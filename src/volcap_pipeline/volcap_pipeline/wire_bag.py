@@ -119,8 +119,8 @@ def record_wire(cfg: WireBagConfig) -> WireBagReport:
                     writer.write(topics.CALIBRATION, String(data=calibration_text), fs.stamp_ns)
                 pipeline.correction = correction
                 try:
-                    frame_out = pipeline.wire(cleaned.result.depth, cleaned.model, frame.color, frame.color_model,
-                                              fs.stamp_ns, frame.color_frame_id, cfg.wire)
+                    frame_out = pipeline.wire(cleaned.result.depth, cleaned.model, cleaned.result.source_color,
+                                              frame.color_model, fs.stamp_ns, frame.color_frame_id, cfg.wire)
                 finally:
                     pipeline.correction = None
                 for stream, msg in zip(WIRE_STREAMS, (frame_out.depth_info, frame_out.color_info, frame_out.depth,

@@ -13,6 +13,7 @@ from volcap_core.settings import setting
 
 SCENES = ('person', 'bunny')
 BOARD_LAYOUTS = ('sweep', 'pairs')
+MOTIONS = ('turn', 'none')
 
 
 def shared_data_dir() -> Path:
@@ -60,6 +61,8 @@ class SynthConfig:
                                 'neighbouring stands (as the calibration\'s advice guides)', choices=BOARD_LAYOUTS)
     background_frames: int = setting(3, 'clean-plate frames (no subject)', 0, 10_000)
     scene: str = setting('person', 'the subject', choices=SCENES)
+    motion: str = setting('turn', 'turn: the subject turns slowly (20 deg/s) with a little sway; none: it holds still '
+                          '(temporal stability)', choices=MOTIONS)
     seed: int = setting(0, 'random seed of the rig\'s devices, the motion and the sensor noise', 0, 2**31 - 1)
     fps: float = setting(30.0, 'capture frame rate', 1.0, 240.0)
     stamp_jitter_ms: float = 0.3

@@ -184,9 +184,10 @@ def studio_lights() -> tuple[list[Light], float]:
     return lights, 0.18
 
 
-def subject_pose(frame: int, fps: float) -> np.ndarray:
-    """T_studio_subject at a capture frame: a slow turn (20 deg/s) with a little sway."""
-    t = frame / fps
+def subject_pose(frame: int, fps: float, motion: str = 'turn') -> np.ndarray:
+    """T_studio_subject at a capture frame: a slow turn (20 deg/s) with a little sway, or (motion
+    ``none``) the first frame's pose held."""
+    t = frame / fps if motion == 'turn' else 0.0
     yaw = np.radians(20.0) * t
     c, s = np.cos(yaw), np.sin(yaw)
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])

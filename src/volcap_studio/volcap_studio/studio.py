@@ -125,7 +125,7 @@ def session_plan(cfg: SynthConfig, board: BoardConfig, rng: np.random.Generator)
         t += period
     t += PHASE_GAP_NS
     for k in range(cfg.frames):
-        plans.append(FramePlan(len(plans), CAPTURE, t, subject_pose=sc.subject_pose(k, cfg.fps)))
+        plans.append(FramePlan(len(plans), CAPTURE, t, subject_pose=sc.subject_pose(k, cfg.fps, cfg.motion)))
         t += period
     return plans
 

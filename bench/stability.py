@@ -1,0 +1,123 @@
+"""Shimmer: how much the fused model changes from frame to frame where the subject does not,
+and what temporal filtering of the cleaned depth buys, against what it costs a moving subject.
+
+For each seed two synthetic 8-camera studios are rendered: one whose subject holds still
+(``volcap synth --motion none``) and the default turning one. Every capture frame set is cleaned
+(``volcap_pipeline.replay``, the camera pipeline's own code, one cleaner per camera carrying its
+temporal state) and fused with the ground-truth poses at the graph's voxel size; then
+
+- stability (``volcap_fusion.stability``, the subject's true motion taken out): surface jitter
+  (RMS mm), colour flicker (CIEDE2000), share of the surface appearing or vanishing per frame;
+- the fusion against the truth (``volcap_eval.fusion.score_frame``): accuracy and completeness,
+  the frames after the filter has settled (from the third).
+
+    python bench/stability.py [--seeds 3 8] [--frames 8] [--alphas 0 0.3] [--json bench_out/stability.json]
+"""
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from volcap_core.camera import depth_to_millimetres
+from volcap_core.poses import invert, matrix_from_list, transform_points
+from volcap_eval.fusion import dropout_rate, score_frame
+from volcap_filter.pipeline import DepthFilterConfig
+from volcap_fusion.config import VOXEL_SIZE
+from volcap_fusion.stability import format_stability, sequence_stability
+from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion
+from volcap_pipeline.replay import cleaned_frame_sets
+from volcap_studio.session import GroundTruth, synthesize
+from volcap_studio.studio import SynthConfig
+
+
+def studio(out: Path, seed: int, frames: int, motion: str) -> Path:
+    bag = out / f'studio_{motion}_{seed}'
+    if not (bag / 'ground_truth').exists():
+        synthesize(bag, SynthConfig(cameras=8, frames=frames, board_poses=0, background_frames=3, seed=seed,
+                                    motion=motion), progress=False)
+    return bag
+
+
+def fuse_sequence(bag: Path, configs: dict[str, DepthFilterConfig], voxel: float) -> tuple[dict, list[int], dict]:
+    """{config: [FusedModel per capture set]} in the world frame, the sets' stamps, and the mean
+    cleaning ms per camera frame."""
+    gt = GroundTruth(bag)
+    T_sw = np.asarray(gt.doc['T_studio_world'], float)     # fused in the studio frame, on the floor, as the graph does
+    fusion = TsdfFusion(FusionConfig(voxel_size=voxel))
+    models, stamps, ms = {c: [] for c in configs}, [], {c: [] for c in configs}
+    for fs, cleaned in cleaned_frame_sets(bag, configs):
+        stamps.append(fs.stamp_ns)
+        for name, cams in cleaned.items():
+            ms[name] += [sum(c.result.timings_ms.values()) for c in cams.values()]
+            views = [CameraView(cam, depth_to_millimetres(c.result.depth), c.cleaner.output_model, c.color,
+                                c.frame.color_model, T_sw @ gt.T_world_color(cam)) for cam, c in cams.items()]
+            model = fusion.fuse(views, on_floor=True)
+            model.vertices = transform_points(invert(T_sw), model.vertices).astype(np.float32)
+            models[name].append(model)
+    return models, stamps, {c: float(np.mean(v)) for c, v in ms.items()}
+
+
+def truth_frame(gt: GroundTruth, stamp_ns: int) -> dict:
+    """The ground-truth capture frame of a frame set (the sets' stamps carry the rig's jitter)."""
+    return min((f for f in gt.frames if 'T_world_subject' in f), key=lambda f: abs(f['stamp_ns'] - stamp_ns))
+
+
+def truth_scores(gt: GroundTruth, models: list, stamps: list[int], skip: int) -> dict:
+    tof = gt.doc['config']['tof']
+    T_sw = np.asarray(gt.doc['T_studio_world'], float)
+    rows = []
+    for model, stamp in list(zip(models, stamps))[skip:]:
+        index = truth_frame(gt, stamp)['index']
+        dropped = gt.arrays(index, suffix='/dropped')
+        sensors = [(c.depth, gt.T_world_depth(c.name), c.color, gt.T_world_color(c.name),
+                    dropout_rate(dropped[f'{c.name}/dropped'])) for c in gt.rig.cameras]
+        rows.append(score_frame(model, gt.subject_mesh(index), sensors, tof, T_studio_world=T_sw))
+    return {k: float(np.mean([r[k] for r in rows if r.get(k) is not None]))
+            for k in ('accuracy_mm', 'completeness', 'completeness_feet')}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--seeds', type=int, nargs='+', default=[3, 8])
+    ap.add_argument('--frames', type=int, default=8)
+    ap.add_argument('--alphas', type=float, nargs='+', default=[0.0, 0.3],
+                    help='temporal_alpha values of the depth filter (0 = off)')
+    ap.add_argument('--voxel', type=float, default=VOXEL_SIZE)
+    ap.add_argument('--work', default='bench_out/stability')
+    ap.add_argument('--json', default='bench_out/stability.json')
+    args = ap.parse_args()
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    configs = {f'alpha {a:g}': DepthFilterConfig(temporal_alpha=a) for a in args.alphas}
+    results = []
+    for seed in args.seeds:
+        for motion in ('none', 'turn'):
+            t0 = time.perf_counter()
+            bag = studio(work, seed, args.frames, motion)
+            gt = GroundTruth(bag)
+            models, stamps, ms = fuse_sequence(bag, configs, args.voxel)
+            poses = {s: matrix_from_list(truth_frame(gt, s)['T_world_subject']) for s in stamps}
+            for name, seq in models.items():
+                # the first two frames are the filter settling; pairs and truth from the third
+                settled, settled_stamps = seq[2:], stamps[2:]
+                motion_of = (lambda k, s=settled_stamps: poses[s[k + 1]] @ invert(poses[s[k]]))
+                stability = sequence_stability(settled, motion=motion_of)
+                scores = truth_scores(gt, models[name], stamps, 2)
+                row = {'seed': seed, 'motion': motion, 'config': name, 'clean_ms_per_camera_frame': ms[name],
+                       **{k: stability[k] for k in ('frame_pairs', 'jitter_rms_mm', 'flicker_de', 'appear_vanish')},
+                       **scores}
+                results.append(row)
+                print(f'seed {seed} motion {motion:4s} {name:10s} {format_stability(stability)}; accuracy '
+                      f'{scores["accuracy_mm"]:.2f} mm, completeness {100 * scores["completeness"]:.1f} %, feet '
+                      f'{100 * scores["completeness_feet"]:.1f} %; cleaning {ms[name]:.0f} ms/camera frame', flush=True)
+            print(f'  ({time.perf_counter() - t0:.0f} s)', flush=True)
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({'frames': args.frames, 'voxel': args.voxel, 'results': results}, indent=2))
+    print(f'wrote {out}')
+
+
+if __name__ == '__main__':
+    main()
