@@ -23,7 +23,7 @@ os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / 'shared' / 'data'
 # Rendering or training these takes tens of seconds on 2 cores: tests that use them are `slow`.
-SLOW_FIXTURES = {'browser', 'person_sequence',
+SLOW_FIXTURES = {'browser', 'person_sequence', 'still_bag',
                  'studio_bag', 'calib_bag', 'calib_bag_good', 'calib_bag_blind_camera', 'k4a_bag', 'capture_bag', 'trained', 'install'}
 
 
@@ -80,6 +80,13 @@ def studio_bag(tmp_path_factory, shared_data):
     """One small 8-camera studio session (clean plate, 2 board poses, 2 capture frames)."""
     return _rendered_once(tmp_path_factory, 'studio', cameras=8, frames=2, board_poses=2, background_frames=1,
                           seed=7)
+
+
+@pytest.fixture(scope='session')
+def still_bag(tmp_path_factory, shared_data):
+    """Four cameras (two stands) on a subject that holds still (``--motion none``): 4 capture frames."""
+    return _rendered_once(tmp_path_factory, 'still', cameras=4, frames=4, board_poses=0, background_frames=1,
+                          seed=13, motion='none')
 
 
 def _small_session(tmp_path_factory, name, **cfg):

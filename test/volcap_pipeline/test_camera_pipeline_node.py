@@ -80,7 +80,7 @@ def test_every_camera_is_cleaned_and_corrected_as_the_replay_does(studio_bag, ro
             set_stamp, cleaned = min(offline, key=lambda o: abs(o[0] - stamp))
             assert abs(set_stamp - stamp) < 5_000_000
             ours = cleaned[c]
-            np.testing.assert_array_equal(image_to_numpy(msg), correction.apply(ours.frame.color))
+            np.testing.assert_array_equal(image_to_numpy(msg), correction.apply(ours.result.source_color))
             live_mm = image_to_numpy(depth[stamp]).astype(np.int32)
             replay_mm = depth_to_millimetres(ours.result.depth).astype(np.int32)
             assert live_mm.shape == replay_mm.shape == ours.frame.color.shape[:2]
