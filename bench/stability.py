@@ -11,10 +11,11 @@ temporal state) and fused with the ground-truth poses at the graph's voxel size;
 - the fusion against the truth (``volcap_eval.fusion.score_frame``): accuracy and completeness,
   the frames after the filter has settled (from the third).
 
-    python bench/stability.py [--seeds 3 8] [--frames 8] [--alphas 0 0.3] [--json bench_out/stability.json]
+    python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--json bench_out/stability.json]
 """
 import argparse
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -78,11 +79,19 @@ def truth_scores(gt: GroundTruth, models: list, stamps: list[int], skip: int) ->
             for k in ('accuracy_mm', 'completeness', 'completeness_feet')}
 
 
+def commit() -> str:
+    try:
+        return subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return 'unknown'
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--seeds', type=int, nargs='+', default=[3, 8])
-    ap.add_argument('--frames', type=int, default=8)
-    ap.add_argument('--alphas', type=float, nargs='+', default=[0.0, 0.3],
+    ap.add_argument('--frames', type=int, default=10)
+    ap.add_argument('--alphas', type=float, nargs='+', default=[0.0, 0.1],
                     help='temporal_alpha values of the depth filter (0 = off)')
     ap.add_argument('--voxel', type=float, default=VOXEL_SIZE)
     ap.add_argument('--work', default='bench_out/stability')
@@ -115,7 +124,7 @@ def main():
             print(f'  ({time.perf_counter() - t0:.0f} s)', flush=True)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({'frames': args.frames, 'voxel': args.voxel, 'results': results}, indent=2))
+    out.write_text(json.dumps({'commit': commit(), 'frames': args.frames, 'voxel': args.voxel, 'results': results}, indent=2))
     print(f'wrote {out}')
 
 
