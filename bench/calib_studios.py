@@ -50,7 +50,8 @@ def score(bag: Path) -> dict:
                 'predicted_trans_err_mm': outcome.extrinsics.cameras[c].trans_sigma_mm,
                 'views': outcome.extrinsics.cameras[c].views}
             for c in T_est if c != outcome.calibration.reference}
-    return {'cameras': cams, 'flagged': sorted(outcome.weak),
+    # what the operator is told to capture next (a weak studio is refused with these views)
+    return {'cameras': cams, 'flagged': sorted(outcome.weak), 'advice': list(outcome.coverage.advice),
             'max_rot_err_deg': max(v['rot_err_deg'] for v in cams.values()),
             'max_trans_err_mm': max(v['trans_err_mm'] for v in cams.values())}
 
@@ -85,8 +86,10 @@ def main() -> None:
         meets = r['max_rot_err_deg'] <= 0.1 and r['max_trans_err_mm'] <= 2.0
         r['meets_target'] = bool(meets)
         r['honest'] = bool(meets or r['flagged'])
+        r['refused_with_views'] = bool(r['flagged'] and r['advice'])
         print(f'{r["rig_cameras"]:4d} {r["poses"]:5d} {r["seed"]:4d}  {r["max_rot_err_deg"]:8.3f} {r["max_trans_err_mm"]:7.2f}  '
-              f'{rot:13.2f} {mm:12.2f}  {"yes" if meets else "no ":<5}  {", ".join(r["flagged"]) or "-"}')
+              f'{rot:13.2f} {mm:12.2f}  {"yes" if meets else "no ":<5}  {", ".join(r["flagged"]) or "-"}'
+              + (f'  advice: {"; ".join(r["advice"])}' if r['flagged'] else ''))
     solved = [r for r in results if 'failed' not in r]
     cams = [v for r in solved for v in r['cameras'].values()]
     if cams:

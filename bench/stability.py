@@ -11,7 +11,7 @@ temporal state) and fused with the ground-truth poses at the graph's voxel size;
 - the fusion against the truth (``volcap_eval.fusion.score_frame``): accuracy and completeness,
   the frames after the filter has settled (from the third).
 
-    python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--json bench_out/stability.json]
+    python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--motions none turn] [--json bench_out/stability.json]
 """
 import argparse
 import json
@@ -34,7 +34,7 @@ from volcap_studio.studio import SynthConfig
 
 
 def studio(out: Path, seed: int, frames: int, motion: str) -> Path:
-    bag = out / f'studio_{motion}_{seed}'
+    bag = out / f'studio_{motion}_{seed}_{frames}f'
     if not (bag / 'ground_truth').exists():
         synthesize(bag, SynthConfig(cameras=8, frames=frames, board_poses=0, background_frames=3, seed=seed,
                                     motion=motion), progress=False)
@@ -93,6 +93,7 @@ def main():
     ap.add_argument('--frames', type=int, default=10)
     ap.add_argument('--alphas', type=float, nargs='+', default=[0.0, 0.1],
                     help='temporal_alpha values of the depth filter (0 = off)')
+    ap.add_argument('--motions', nargs='+', default=['none', 'turn'], choices=['none', 'turn'])
     ap.add_argument('--voxel', type=float, default=VOXEL_SIZE)
     ap.add_argument('--work', default='bench_out/stability')
     ap.add_argument('--json', default='bench_out/stability.json')
@@ -102,7 +103,7 @@ def main():
     configs = {f'alpha {a:g}': DepthFilterConfig(temporal_alpha=a) for a in args.alphas}
     results = []
     for seed in args.seeds:
-        for motion in ('none', 'turn'):
+        for motion in args.motions:
             t0 = time.perf_counter()
             bag = studio(work, seed, args.frames, motion)
             gt = GroundTruth(bag)
@@ -116,6 +117,9 @@ def main():
                 scores = truth_scores(gt, models[name], stamps, 2)
                 row = {'seed': seed, 'motion': motion, 'config': name, 'clean_ms_per_camera_frame': ms[name],
                        **{k: stability[k] for k in ('frame_pairs', 'jitter_rms_mm', 'flicker_de', 'appear_vanish')},
+                       # per pair: how the change falls as the average fills (the steady state is the tail)
+                       'jitter_per_pair_mm': [p['jitter_rms_mm'] for p in stability['pairs']],
+                       'flicker_per_pair': [p['flicker_de'] for p in stability['pairs']],
                        **scores}
                 results.append(row)
                 print(f'seed {seed} motion {motion:4s} {name:10s} {format_stability(stability)}; accuracy '
