@@ -89,7 +89,7 @@ def main() -> None:
         r['refused_with_views'] = bool(r['flagged'] and r['advice'])
         print(f'{r["rig_cameras"]:4d} {r["poses"]:5d} {r["seed"]:4d}  {r["max_rot_err_deg"]:8.3f} {r["max_trans_err_mm"]:7.2f}  '
               f'{rot:13.2f} {mm:12.2f}  {"yes" if meets else "no ":<5}  {", ".join(r["flagged"]) or "-"}'
-              + (f'  advice: {"; ".join(r["advice"])}' if r['flagged'] else ''))
+              + (f"  advice: {' '.join(r['advice'])}" if r['flagged'] else ''))
     solved = [r for r in results if 'failed' not in r]
     cams = [v for r in solved for v in r['cameras'].values()]
     if cams:
@@ -111,6 +111,7 @@ def main() -> None:
         ax.set_xlabel(f'predicted RMS error ({unit})')
         ax.set_ylabel(f'true error ({unit})')
         ax.axvline(0.1 if unit == 'deg' else 2.0, color='r', lw=0.8)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())    # minor labels overlap on log axes
     fig.suptitle(f'calibration: predicted vs true pose error per camera ({args.layout} board poses)')
     fig.tight_layout()
     fig.savefig(out / 'calib_studios.png', dpi=110)

@@ -505,16 +505,22 @@ def test_icp_refinement_pulls_perturbed_cameras_onto_the_subject_and_keeps_good_
         refine_with_icp(T_gt, {'cam0': points['cam0']}, 'cam0', cfg)
 
 
-def test_a_calibration_within_the_target_exits_0_and_the_target_is_a_setting(calib_bag_good, tmp_path):
-    """No --accept-weak needed when every camera meets the target; the target and the margin are
-    settings (calibration_service parameters too), so a stricter margin flags the same solve."""
+def test_a_calibration_within_the_target_exits_0_and_the_target_is_a_setting(calib_bag_good, tmp_path, capsys):
+    """No --accept-weak needed when every camera meets the target, and the report says so; the
+    target and the margin are settings (calibration_service parameters too), so a stricter margin
+    flags the same solve."""
     from volcap_bringup.cli import main
     out = tmp_path / 'calibration.yaml'
     assert main(['calibrate', str(calib_bag_good), '--out', str(out), '--quiet']) == 0
+    printed = capsys.readouterr().out
+    assert 'calibration within the target: every camera predicted within 0.1 deg / 2 mm' in printed, printed
+    assert 'WEAK' not in printed
     report = json.loads((tmp_path / 'calibration_report.json').read_text())
     assert not report['weak_cameras']
     predicted = Calibration.load(out).cameras['cam1'].predicted_error
     assert 0 < 2 * predicted['trans_mm'] <= 2.0 and 2 * predicted['rot_deg'] <= 0.1
     strict = 2.0 / predicted['trans_mm'] + 0.5       # this margin puts the same prediction beyond 2 mm
     assert main(['calibrate', str(calib_bag_good), '--out', str(out), '--quiet', '--weak-margin', f'{strict:.3f}']) == 3
+    printed = capsys.readouterr().out
+    assert 'WEAK CALIBRATION: cam1' in printed and 'within the target' not in printed, printed
     assert main(['calibrate', str(calib_bag_good), '--out', str(out), '--quiet', '--weak-margin', '0']) == 2   # range

@@ -133,10 +133,14 @@ def _edge_disjoint_paths(partners: dict[str, dict[str, int]], source: str, sink:
     return paths
 
 
+MAX_PAIR_ANGLE_DEG = 130.0   # the board at most 65 deg from each camera's axis (charts are sampled to 70)
+
+
 def advice_for(observations: list[Observation], coverage: Coverage) -> list[str]:
     """Where to hold the board next, one sentence per weak camera: a linked one is paired with
     the nearest well-placed camera it shares no views with yet (closing a loop), by the chained
-    first guess of the poses; an unlinked one, having no pose yet, with any linked camera."""
+    first guess of the poses, among the cameras that can see one board with it (axes within
+    ``MAX_PAIR_ANGLE_DEG``); an unlinked one, having no pose yet, with any linked camera."""
     report, weak, reference = coverage.cameras, coverage.weak, coverage.reference
     if not weak:
         return []
@@ -146,7 +150,14 @@ def advice_for(observations: list[Observation], coverage: Coverage) -> list[str]
     if len(linked) > 1:
         T_cam, _, _ = chain_poses([o for o in observations if o.camera in linked], linked, reference)
         positions = {c: T[:3, 3] for c, T in T_cam.items()}
+    axes = {c: T[:3, 2] for c, T in T_cam.items()} if positions else {}
     strong = [c for c in linked if c not in weak]
+
+    def can_share(a: str, b: str) -> bool:
+        # one board seen by both: their optical axes within MAX_PAIR_ANGLE_DEG (facing cameras
+        # across a ring cannot both see the board's face)
+        return a in axes and b in axes and float(axes[a] @ axes[b]) >= np.cos(np.radians(MAX_PAIR_ANGLE_DEG))
+
     out = []
     for c in weak:
         if c not in positions:
@@ -154,10 +165,17 @@ def advice_for(observations: list[Observation], coverage: Coverage) -> list[str]
             out.append(f'show the board to {c} together with a linked camera ({", ".join(linked)}).'
                        if report[c].views else f'show the board to {c} together with any linked camera.')
             continue
-        # Pair it with a well-placed camera it does not already share views with (that closes
-        # a loop), else with its nearest well-placed one.
-        others = [p for p in strong if p != c and p not in report[c].partners] or [p for p in strong if p != c]
-        partner = min(others, key=lambda p: np.linalg.norm(positions[p] - positions[c])) if others else reference
+        # Pair it with a camera that can see the board with it: a well-placed one it does not
+        # share views with yet (that closes a loop), else its nearest well-placed one; when none
+        # of those can (every other camera weak, the reference across the ring), a linked one it
+        # shares no views with, so the views added tie the ring together.
+        near = [p for p in linked if p != c and can_share(c, p)]
+        others = ([p for p in near if p in strong and p not in report[c].partners] or
+                  [p for p in near if p in strong] or [p for p in near if p not in report[c].partners] or near)
+        # Among them the fewest links from the reference first (a shared view shortens c's
+        # chain), then the nearest.
+        partner = (min(others, key=lambda p: (report[p].hops, np.linalg.norm(positions[p] - positions[c])))
+                   if others else reference)
         out.append(f'hold the board between {c} and {partner} (both must see it).')
     return out
 

@@ -98,6 +98,7 @@ class CalibrateReport:
     color: dict
     icp: dict | None
     files: dict[str, Path] = field(default_factory=dict)
+    target: tuple[float, float, float] = (0.1, 2.0, 2.0)     # deg, mm, margin the weak test used
 
     def lines(self) -> list[str]:
         out = [f'wrote {self.files["calibration"]} ({len(self.calibration.cameras)} cameras, {self.observations} '
@@ -121,6 +122,13 @@ class CalibrateReport:
                        f'{flag}{col_txt}')
         for c, why in self.outcome.color_errors.items():
             out.append(f'  {c}: no colour model: {why}')
+        if not self.outcome.weak and not self.outcome.color_errors:
+            deg, mm, margin = self.target
+            out.append(f'calibration within the target: every camera predicted within {deg:g} deg / {mm:g} mm '
+                       f'with a {margin:g}x margin')
+        elif not self.outcome.weak:
+            deg, mm, margin = self.target
+            out.append(f'poses within the target ({deg:g} deg / {mm:g} mm, {margin:g}x margin); colour: see above')
         if self.outcome.weak:
             out.append(f'WEAK CALIBRATION: {", ".join(self.outcome.weak)} may miss the target (predicted error, '
                        'with its margin, beyond it); '
@@ -163,4 +171,5 @@ def run(cfg: CalibrateConfig) -> CalibrateReport:
                                    outcome.extrinsics.T_world_target, report['cameras'])}
     if color:
         files['color'] = color_figure(report_dir / f'{out.stem}_colour.png', color)
-    return CalibrateReport(calibration, outcome, len(calibrator.observations), calibrator.views, color, icp, files)
+    return CalibrateReport(calibration, outcome, len(calibrator.observations), calibrator.views, color, icp, files,
+                           (cfg.solve.max_rot_err_deg, cfg.solve.max_trans_err_mm, cfg.solve.weak_margin))
