@@ -12,7 +12,7 @@ from volcap_calib.board import BoardConfig, reference_srgb8, write_board
 from volcap_calib.calibrate import CalibrationConfig
 from volcap_calib.chart import ChartNotFound, find_color_checker
 from volcap_calib.color import component_differences, fit_camera_color, fit_model
-from volcap_calib.coverage import rig_coverage
+from volcap_calib.coverage import advice_for, rig_coverage
 from volcap_calib.detect import BoardDetector, Detection, DetectionError, detect_chessboard
 from volcap_calib.extrinsics import (
     CalibrationError,
@@ -239,6 +239,18 @@ def test_coverage_finds_unlinked_and_chained_cameras_and_says_where_to_hold_the_
     assert 'show the board to cam3 together with a linked camera (cam0, cam1, cam2, cam5).' in apart.advice
     # cam2 hangs on cam1 alone: paired with a well-placed camera it shares nothing with yet.
     assert 'hold the board between cam2 and cam0 (both must see it).' in apart.advice
+    # Every camera but the reference weak (as a solve's predicted error can make them): cam3,
+    # across the ring from cam0, is not sent to it (no board faces both) but to a camera beside
+    # it; each weak camera gets a partner that can see the board with it.
+    observations = _posed_observations(T_true, models, ring)
+    thin = rig_coverage(observations, cams, 'cam0')
+    thin.weak = {c: 'predicted error beyond the target' for c in cams[1:]}
+    advice = advice_for(observations, thin)
+    assert len(advice) == 5 and not any('cam3 and cam0' in a for a in advice), advice
+    for line in advice:
+        a, b = line.removeprefix('hold the board between ').split(' (')[0].split(' and ')
+        axis_a, axis_b = T_true[a][:3, 2], T_true[b][:3, 2]
+        assert axis_a @ axis_b > np.cos(np.radians(130)), line
 
 
 def test_degenerate_views_are_refused():
