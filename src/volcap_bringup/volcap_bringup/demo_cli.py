@@ -46,7 +46,7 @@ def cmd_demo(args) -> int:
     from volcap_calib.run import run as calibrate
     from volcap_core.bag_reader import BagReader
     from volcap_core.files import write_json
-    from volcap_eval.fusion import evaluate_fusion
+    from volcap_eval.fusion import evaluate_fusion, format_seams
     from volcap_eval.stability import evaluate_stability
     from volcap_fusion.stability import format_stability
     from volcap_studio.session import GroundTruth, synthesize
@@ -115,6 +115,7 @@ def cmd_demo(args) -> int:
     print(f'{fusion["frames"]} frames: accuracy {fusion["accuracy_mm"]:.2f} mm, completeness '
           f'{100 * fusion["completeness"]:.1f} % of the observable surface, '
           f'{100 * (fusion["completeness_feet"] or 0):.1f} % of its lowest 15 cm (feet)')
+    print(format_seams(fusion['seams']))
     stability = evaluate_stability(run, bag, frames=demo.scored_frames, progress=False)
     write_json(out / 'stability.json', stability)
     print(f'{format_stability(stability)} ({stability["scored"]}): volcap eval stability -> {out / "stability.json"}')

@@ -96,14 +96,19 @@ def cmd_eval_color_frames(args) -> int:
 
 
 def cmd_eval_fusion(args) -> int:
-    from volcap_eval.fusion import evaluate_fusion
-    report = evaluate_fusion(args.dir, args.bag, progress=not args.quiet, max_frames=args.frames)
+    from volcap_core.calibration import Calibration
+    from volcap_eval.fusion import evaluate_fusion, format_seams
+    calibration = Calibration.load(args.calibration) if args.calibration else None
+    report = evaluate_fusion(args.dir, args.bag, progress=not args.quiet, max_frames=args.frames,
+                             seams=not args.no_seams, calibration=calibration)
     print(f'{report["frames"]} frames: accuracy {report["accuracy_mm"]:.2f} mm (mean distance to the subject), '
           f'completeness {100 * report["completeness"]:.1f} % of the observable surface within '
           f'{report["completeness_threshold_mm"]:.0f} mm ({100 * report["completeness_all"]:.1f} % of all of it)')
     if report['completeness_feet'] is not None:
         print(f'  lowest {100 * report["feet_m"]:.0f} cm of the subject (feet, floor contact): completeness '
               f'{100 * report["completeness_feet"]:.1f} %')
+    if report.get('seams'):
+        print(f'  {format_seams(report["seams"])}')
     if args.json:
         write_json(args.json, report)
         print(f'wrote {args.json}')
@@ -187,6 +192,9 @@ def add_parsers(esub) -> None:
     e.add_argument('bag', help='the synthetic bag it was made from')
     e.add_argument('--json', help='write the report here')
     e.add_argument('--frames', type=int, default=None, help='score only the first N frames')
+    e.add_argument('--calibration', help='the colour models the run applied, for the seam score (default: the '
+                                         'calibration the run\'s metrics.json names)')
+    e.add_argument('--no-seams', action='store_true', help='leave the seam score out')
     e.add_argument('--quiet', action='store_true')
     e.set_defaults(func=cmd_eval_fusion)
     st = esub.add_parser('stability', help='frame-to-frame change of a fused sequence where the subject holds still: '

@@ -132,7 +132,8 @@ def run_graph(cfg: RunConfig) -> dict:
         summary = probe.summary()
     codes = session.exit_codes
     return {'mode': 'composed' if cfg.composed else 'processes', 'cameras': cameras,
-            'capture_frame_sets_in_bag': capture_sets, 'bag_damage': bag_damage,
+            'calibration': str(Path(calibration_path).resolve()), 'capture_frame_sets_in_bag': capture_sets,
+            'bag_damage': bag_damage,
             'recording_failure': '; '.join(failures), 'playback_rate': cfg.rate, 'voxel_size': cfg.voxel_size,
             'wall_s': time.monotonic() - t_start, 'probe': summary,
             'node_exit_codes': {spec_name(n): codes.get(spec_name(n), codes.get(n[1])) for n in nodes}}

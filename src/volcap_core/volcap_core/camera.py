@@ -62,6 +62,8 @@ class CameraModel:
     def project(self, points: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) of camera-frame points (N, 3) with z > 0, distortion applied."""
         pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 1, 3)
+        if not len(pts):        # OpenCV answers None for no points
+            return np.zeros((0, 2))
         zero = np.zeros(3)
         px, _ = cv2.projectPoints(pts, zero, zero, self.K, self.D)
         return px.reshape(-1, 2)

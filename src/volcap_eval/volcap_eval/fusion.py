@@ -14,6 +14,13 @@ to the synthetic bag's ground truth, and scored against the subject mesh at that
 - completeness_feet: the same over the lowest 15 cm of the subject (gravity frame), where the
   floor meets the feet and cleaning is hardest.
 
+- seams (``volcap_fusion.seams``): where the model passes from one camera's best view to
+  another's, CIEDE2000 between the colours the two cameras give the same vertex. The cameras'
+  colours are the bag's images through the colour models of the calibration the run used (its
+  ``metrics.json`` names it; ``calibration`` overrides), posed by the ground truth; beside it the
+  same with every camera's true colours (its recorded response inverted), the part no colour
+  correction can remove (shading that changes with the view, colour-to-depth registration).
+
 The fused frames are in the studio frame; the sequence header's ``T_world_frame`` takes them
 back to the ground truth's world frame.
 
@@ -29,9 +36,14 @@ import numpy as np
 import open3d as o3d
 from tqdm import tqdm
 
+from volcap_core.calibration import Calibration
 from volcap_core.camera import CameraModel
+from volcap_core.color import ColorModel
 from volcap_core.errors import BadInput
+from volcap_core.frames import frame_sets
 from volcap_core.poses import invert, transform_points
+from volcap_core.topics import CAPTURE
+from volcap_fusion.seams import SeamView, seam_score
 from volcap_fusion.sequence import T_world_frame, read_ply, read_sequence
 from volcap_fusion.tsdf import (
     FusedModel,
@@ -124,8 +136,63 @@ def score_frame(model: FusedModel, truth: o3d.geometry.TriangleMesh, sensors, to
             'vertices': int(len(model.vertices))}
 
 
-def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True, max_frames: int | None = None
-                    ) -> dict:
+STAMP_TOLERANCE_NS = 20_000_000    # a fused frame and the bag's frame set it came from
+
+
+def run_calibration(run_dir: str | Path) -> Calibration | None:
+    """The calibration a `volcap run` used, as its ``metrics.json`` names it (None: not recorded
+    or no longer there)."""
+    import json
+    metrics = Path(run_dir) / 'metrics.json'
+    try:
+        path = json.loads(metrics.read_text()).get('calibration')
+    except (OSError, ValueError):
+        return None
+    return Calibration.load(path) if path and Path(path).exists() else None
+
+
+def true_color_image(gt, camera: str, rgb: np.ndarray) -> np.ndarray:
+    """What the ideal camera would have recorded where ``camera`` recorded ``rgb`` (uint8)."""
+    h, w = rgb.shape[:2]
+    v, u = np.mgrid[0:h, 0:w]
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
+    true = gt.color_response(camera).true_colors(rgb.reshape(-1, 3) / 255.0, pixels, (w, h))
+    return np.round(true * 255).astype(np.uint8).reshape(h, w, 3)
+
+
+def frame_seams(bag: str | Path, entries: list[dict], models, gt, calibration: Calibration | None,
+                progress: bool = True) -> list[dict]:
+    """Per fused frame (``models`` yields them in ``entries``' order, in the world frame), the
+    seam score against the bag's colour images of its frame set (module docstring)."""
+    rig = gt.rig
+    color_models = {c.name: calibration.cameras[c.name].color for c in rig.cameras
+                    if calibration is not None and c.name in calibration.cameras}
+    correct = {n: ColorModel.from_dict(d) for n, d in color_models.items() if d}
+    wanted = iter(zip(entries, models))
+    entry, model = next(wanted, (None, None))
+    rows = []
+    bar = tqdm(total=len(entries), desc='seams', unit='frame', disable=not progress)
+    for fs in frame_sets(bag, phases=(CAPTURE,)):
+        while entry is not None and entry['stamp_ns'] < fs.stamp_ns - STAMP_TOLERANCE_NS:
+            rows.append({'index': entry['index'], 'seam_de': None})        # its frame set is not in the bag
+            entry, model = next(wanted, (None, None))
+        if entry is None:
+            break
+        if abs(entry['stamp_ns'] - fs.stamp_ns) > STAMP_TOLERANCE_NS:
+            continue
+        views = [SeamView(c.name, correct[c.name].apply_image(fs.cameras[c.name].color) if c.name in correct
+                          else fs.cameras[c.name].color, c.color, gt.T_world_color(c.name),
+                          reference=true_color_image(gt, c.name, fs.cameras[c.name].color))
+                 for c in rig.cameras if c.name in fs.cameras]
+        rows.append({'index': entry['index'], **seam_score(model, views)})
+        bar.update()
+        entry, model = next(wanted, (None, None))
+    bar.close()
+    return rows
+
+
+def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True, max_frames: int | None = None,
+                    seams: bool = True, calibration: Calibration | None = None) -> dict:
     from volcap_studio.session import GroundTruth
     gt = GroundTruth(bag)
     frames_dir = Path(run_dir) / 'frames'
@@ -141,7 +208,7 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
     per_frame = []
     for entry in tqdm(entries, desc='scoring fused frames', unit='frame', disable=not progress):
         nearest = int(stamps[np.argmin(np.abs(stamps - entry['stamp_ns']))])
-        if abs(nearest - entry['stamp_ns']) > 20_000_000:
+        if abs(nearest - entry['stamp_ns']) > STAMP_TOLERANCE_NS:
             raise BadInput(f'fused frame {entry["index"]} (stamp {entry["stamp_ns"]}) has no ground-truth frame')
         index = by_stamp[nearest]['index']
         truth = gt.subject_mesh(index)
@@ -155,8 +222,42 @@ def evaluate_fusion(run_dir: str | Path, bag: str | Path, progress: bool = True,
         per_frame.append({'index': entry['index'], 'stamp_ns': entry['stamp_ns'], **row})
     acc = [r['accuracy_mm'] for r in per_frame if r['accuracy_mm'] is not None]
     feet = [r['completeness_feet'] for r in per_frame if r.get('completeness_feet') is not None]
+    seam = {}
+    if seams:
+        calibration = calibration if calibration is not None else run_calibration(run_dir)
+
+        def world_models():
+            for e in entries:
+                model = read_ply(frames_dir / e['ply'])
+                model.vertices = transform_points(T_world_frame(headers, e['index']), model.vertices).astype(np.float32)
+                yield model
+        rows = frame_seams(bag, entries, world_models(), gt, calibration, progress)
+        scored = [r for r in rows if r['seam_de'] is not None]
+
+        def mean(key):
+            values = [r[key] for r in scored if r.get(key) is not None]
+            return float(np.mean(values)) if values else None
+        seam = {'seams': {'seam_de': mean('seam_de'), 'seam_de_true_colours': mean('seam_de_reference'),
+                          'model_step_seam_de': mean('model_step_seam_de'),
+                          'model_step_other_de': mean('model_step_other_de'), 'seam_share': mean('seam_share'),
+                          'colours': 'through the calibration\'s colour models' if calibration is not None
+                          else 'as recorded (no calibration: the run\'s is not recorded or gone)',
+                          'frames': len(scored), 'per_frame': rows}}
     return {'accuracy_mm': float(np.mean(acc)) if acc else None,
             'completeness': float(np.mean([r['completeness'] for r in per_frame])),
             'completeness_feet': float(np.mean(feet)) if feet else None, 'feet_m': FEET_M,
             'completeness_all': float(np.mean([r['completeness_all'] for r in per_frame])),
-            'completeness_threshold_mm': COMPLETENESS_MM, 'frames': len(per_frame), 'per_frame': per_frame}
+            'completeness_threshold_mm': COMPLETENESS_MM, 'frames': len(per_frame), 'per_frame': per_frame, **seam}
+
+
+def format_seams(seams: dict) -> str:
+    """One line for ``evaluate_fusion``'s ``seams``."""
+    if seams['seam_de'] is None:
+        return 'seams: none found (no vertex where the best camera changes)'
+    other = seams['model_step_other_de']
+    elsewhere = f', elsewhere {other:.2f}' if other is not None else ''
+    true = seams.get('seam_de_true_colours')
+    floor = f' (the cameras\' true colours: {true:.2f})' if true is not None else ''
+    return (f'seams: {seams["seam_de"]:.2f} CIEDE2000 between the colours two cameras give a vertex where the best '
+            f'view changes{floor}, on {100 * seams["seam_share"]:.1f} % of the seen vertices (colours '
+            f'{seams["colours"]}); the model\'s own colour step there {seams["model_step_seam_de"]:.2f}{elsewhere}')
