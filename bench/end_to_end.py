@@ -86,14 +86,15 @@ def main():
                                'rows': rows}, indent=2))
     print(f'\ncalibrate, then run, scored (commit {commit()}, {args.frames} frames, {args.board_poses} poses in '
           'pairs):\n')
-    print('| seed | calibration | accuracy mm | completeness | feet (lowest 15 cm) | seam CIEDE2000 (model step at '
-          'seams / elsewhere) | jitter mm | flicker | appear/vanish |')
-    print('|---|---|---|---|---|---|---|---|---|')
+    print('| seed | calibration | accuracy mm | completeness | feet (lowest 15 cm) | seam CIEDE2000 (true colours) | '
+          'model step at seams / elsewhere | jitter mm | flicker | appear/vanish |')
+    print('|---|---|---|---|---|---|---|---|---|---|')
     for r in rows:
         s = r['seams']
         print(f'| {r["seed"]} | {"within the target" if r["calibration_exit"] == 0 else "weak"} | '
               f'{r["accuracy_mm"]:.2f} | {100 * r["completeness"]:.1f} % | {100 * r["completeness_feet"]:.1f} % | '
-              f'{s["seam_de"]:.2f} ({s["model_step_seam_de"]:.2f} / {s["model_step_other_de"]:.2f}) | '
+              f'{s["seam_de"]:.2f} ({s["seam_de_true_colours"]:.2f}) | '
+              f'{s["model_step_seam_de"]:.2f} / {s["model_step_other_de"]:.2f} | '
               f'{r["jitter_rms_mm"]:.2f} | {r["flicker_de"]:.2f} | {100 * r["appear_vanish"]:.2f} % |')
     print(f'\nwrote {out}')
 

@@ -28,4 +28,8 @@ def test_demo_calibrates_runs_and_scores_without_an_error_line(tmp_path, capfd, 
     fusion = json.loads((out / 'fusion.json').read_text())
     # calibrated from the board (16 poses), not the truth
     assert fusion['frames'] == 2 and fusion['accuracy_mm'] < 3.0 and fusion['completeness'] > 0.85, fusion
+    # the feet and the colour seams are scored too (their targets are bench/end_to_end.py's)
+    assert fusion['completeness_feet'] is not None and fusion['seams']['frames'] == 2
+    assert fusion['seams']['seam_de'] is not None and 'through the calibration' in fusion['seams']['colours']
+    assert 'seams:' in text
     assert 'colour steps left out' in text and not (out / 'colour.json').exists()

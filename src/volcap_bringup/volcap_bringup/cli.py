@@ -18,7 +18,8 @@
     volcap live --calibration calibration.yaml [--bag BAG | --bag WIREBAG] [--seconds S]
     volcap view DIR | --live [--port 8080]
     volcap operator [--cameras cam0,cam1] [--hz 2] [--web-port 9090]
-    volcap eval fusion DIR BAG [--json OUT.json]
+    volcap eval fusion DIR BAG [--json OUT.json] [--calibration CAL] [--no-seams]
+    volcap eval stability DIR [BAG] [--first K] [--frames N]
     volcap fuse-frames FOLDER --intrinsics K.txt --out mesh.ply [--voxel 0.01]
     volcap demo [--out DIR]
 """
