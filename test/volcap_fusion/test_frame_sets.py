@@ -70,3 +70,23 @@ def test_a_frame_set_keeps_the_phase_it_was_captured_in():
     # A set stamped 20 emitted now (it waited for a late camera) is still clean plate.
     assert timeline.at(20) == 'clean_plate' and timeline.at(10) == 'clean_plate'
     assert timeline.at(30) == 'capture' and timeline.at(25) == 'capture'
+
+
+def test_a_phase_change_with_its_stamp_holds_however_late_the_frames_come():
+    """The fusion sees the camera pipelines' output, which trails the player's phase messages:
+    when `capture` is announced the last calibration views may still be in the pipelines. With
+    ``since_ns`` they keep their phase; placed by arrival they would be fused as capture."""
+    from volcap_fusion.frame_sets import PhaseTimeline
+    timeline = PhaseTimeline()
+    timeline.change('calibration', since_ns=0)
+    timeline.frame(10)                            # the pipelines have delivered up to 10 ...
+    timeline.change('capture', since_ns=100)      # ... when the player announces capture from 100
+    for stamp in (20, 30, 40, 110):
+        timeline.frame(stamp)
+    assert [timeline.at(s) for s in (20, 30, 40, 99)] == ['calibration'] * 4
+    assert timeline.at(100) == 'capture' and timeline.at(110) == 'capture'
+    arrival = PhaseTimeline()
+    arrival.change('calibration')
+    arrival.frame(10)
+    arrival.change('capture')
+    assert arrival.at(30) == 'capture'            # what happened before since_ns

@@ -45,11 +45,20 @@ def camera_names(count: int) -> list[str]:
 
 
 def parse_phase(text: str) -> str | None:
-    """The phase a ``volcap/phase`` message (YAML ``{phase: ..., frames: N}``) announces; None
-    when the text is not such a message."""
+    """The phase a ``volcap/phase`` message (YAML ``{phase: ..., frames: N, since_ns: S}``)
+    announces; None when the text is not such a message."""
+    return parse_phase_change(text)[0]
+
+
+def parse_phase_change(text: str) -> tuple[str | None, int | None]:
+    """(phase, since_ns) of a ``volcap/phase`` message: ``since_ns``, when the message carries
+    it, is the capture stamp from which frames belong to the phase (a node that sees the frames
+    late, after processing elsewhere, still places the change exactly); None without it."""
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError:
-        return None
-    phase = doc.get('phase') if isinstance(doc, dict) else None
-    return phase if isinstance(phase, str) else None
+        return None, None
+    if not isinstance(doc, dict) or not isinstance(doc.get('phase'), str):
+        return None, None
+    since = doc.get('since_ns')
+    return doc['phase'], since if isinstance(since, int) and not isinstance(since, bool) else None

@@ -106,22 +106,28 @@ def fused_phase(announced: str | None, phases: tuple[str, ...]) -> bool:
 
 
 class PhaseTimeline:
-    """The session phase each frame set was captured in. ``/volcap/phase`` carries no stamp, but
-    it is sent in order with the frames (a player sends it at its place in the bag; a rig's
-    session tool between frames): frames stamped up to the newest one received before a phase
-    change belong to the phase before it. Deciding at emission time instead would give a set that
-    waited for its late cameras the phase that began meanwhile."""
+    """The session phase each frame set was captured in. A phase message that carries
+    ``since_ns`` (``topics.parse_phase_change``; `volcap synth` writes it) places the change at
+    that capture stamp. One without it is placed by arrival: it is sent in order with the frames
+    (a player sends it at its place in the bag; a rig's session tool between frames), so frames
+    stamped up to the newest one received before the change belong to the phase before it.
+    Arrival is only as good as the frames' lag: the fusion receives the camera pipelines' output,
+    which trails the player by the pipelines' work, and on a loaded host the board views still in
+    the pipelines when ``capture`` was announced were fused as capture. Deciding at emission time
+    would be worse still: a set that waited for its late cameras would take the phase that began
+    meanwhile."""
 
     def __init__(self, keep: int = 16):
-        self._changes: list[tuple[int, str]] = []     # (newest frame stamp seen at the change, phase)
+        self._changes: list[tuple[int, str]] = []     # (frames stamped after this belong to it, phase)
         self._keep = keep
         self.newest_ns = -1
 
     def frame(self, stamp_ns: int) -> None:
         self.newest_ns = max(self.newest_ns, stamp_ns)
 
-    def change(self, phase: str) -> None:
-        self._changes = (self._changes + [(self.newest_ns, phase)])[-self._keep:]
+    def change(self, phase: str | None, since_ns: int | None = None) -> None:
+        boundary = self.newest_ns if since_ns is None else since_ns - 1
+        self._changes = sorted(self._changes + [(boundary, phase)], key=lambda c: c[0])[-self._keep:]
 
     def at(self, stamp_ns: int) -> str | None:
         """The phase of a frame set with this stamp (None: none announced before it)."""

@@ -176,7 +176,7 @@ class TsdfFusionNode(Node):
         self.get_logger().info(f'fusing {len(cameras)} cameras ({self.node_cfg.input}): {", ".join(cameras)}')
 
     def _on_phase(self, msg: String) -> None:
-        self.phases.change(topics.parse_phase(msg.data))
+        self.phases.change(*topics.parse_phase_change(msg.data))
 
     def _on_image(self, camera: str, stream: str, msg: Image | CompressedImage | CameraInfo) -> None:
         stamp = stamp_to_ns(msg.header.stamp)

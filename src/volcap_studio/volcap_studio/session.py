@@ -91,13 +91,16 @@ def _write_frames(bag: BagWriter, rig: Rig, renderer: StudioRenderer, plans: lis
                   progress: bool) -> list[dict]:
     gt_frames.mkdir(parents=True)
     bag.write(topics.RIG, String(data=rig.to_yaml()), plans[0].stamp_ns - 2_000_000 if plans else 0)
-    phase, frames_gt = None, []
+    phase, frames_gt, previous_ns = None, [], None
     for plan in tqdm(plans, desc='rendering studio', unit='frame set', disable=not progress):
         if plan.phase != phase:
             phase = plan.phase
             count = sum(p.phase == phase for p in plans)
-            bag.write(topics.PHASE, String(data=yaml.safe_dump({'phase': phase, 'frames': count})),
+            # the phase starts halfway from the previous frame set: clear of the cameras' stamp jitter
+            since = plan.stamp_ns - 1_000_000 if previous_ns is None else (previous_ns + plan.stamp_ns) // 2
+            bag.write(topics.PHASE, String(data=yaml.safe_dump({'phase': phase, 'frames': count, 'since_ns': since})),
                       plan.stamp_ns - 1_000_000)
+        previous_ns = plan.stamp_ns
         frames = renderer.render(plan)
         preview = gt_frames.parent / 'preview.png'
         if not preview.exists() and (plan.phase == CAPTURE or plan is plans[-1]):
