@@ -41,8 +41,14 @@ def test_bag_follows_the_topic_contract(studio_bag):
     rig_msgs = messages(studio_bag, topics.RIG)
     assert len(rig_msgs) == 1 and yaml.safe_load(rig_msgs[0].data)['cameras'][0]['name'] == 'cam0'
     phases = [yaml.safe_load(m.data) for m in messages(studio_bag, topics.PHASE)]
-    assert phases == [{'phase': 'clean_plate', 'frames': 1}, {'phase': 'calibration', 'frames': 2},
-                      {'phase': 'capture', 'frames': 2}]
+    assert [{k: p[k] for k in ('phase', 'frames')} for p in phases] == [
+        {'phase': 'clean_plate', 'frames': 1}, {'phase': 'calibration', 'frames': 2}, {'phase': 'capture', 'frames': 2}]
+    # each phase holds from a stamp between its first frame set and the one before it
+    gt = GroundTruth(studio_bag)
+    for p in phases:
+        first = min(f['stamp_ns'] for f in gt.frames if f['phase'] == p['phase'])
+        before = [f['stamp_ns'] for f in gt.frames if f['stamp_ns'] < first]
+        assert (max(before) if before else 0) < p['since_ns'] < first, p
 
 
 def test_images_cameras_infos_and_stamps(studio_bag):
