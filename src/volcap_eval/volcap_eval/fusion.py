@@ -29,6 +29,7 @@ pipeline's: ``volcap_pipeline.rig``.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import cv2
@@ -142,7 +143,6 @@ STAMP_TOLERANCE_NS = 20_000_000    # a fused frame and the bag's frame set it ca
 def run_calibration(run_dir: str | Path) -> Calibration | None:
     """The calibration a `volcap run` used, as its ``metrics.json`` names it (None: not recorded
     or no longer there)."""
-    import json
     metrics = Path(run_dir) / 'metrics.json'
     try:
         path = json.loads(metrics.read_text()).get('calibration')

@@ -56,8 +56,7 @@ class SeamView:
 
 
 def vertex_normals(model: FusedModel) -> np.ndarray:
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(model.vertices.astype(np.float64)),
-                                     o3d.utility.Vector3iVector(model.triangles))
+    mesh = model.legacy_mesh()
     mesh.compute_vertex_normals()
     return np.asarray(mesh.vertex_normals)
 
@@ -69,9 +68,7 @@ def camera_colors(model: FusedModel, views: list[SeamView], normals: np.ndarray 
     there (sRGB in [0, 1]); the reference colours likewise where every view has a reference."""
     v = model.vertices.astype(np.float64)
     normals = vertex_normals(model) if normals is None else normals
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(model.vertices, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(model.triangles, np.uint32)))
+    scene = model.raycasting_scene()
     with_reference = all(view.reference is not None for view in views)
     facing = np.zeros((len(views), len(v)), np.float32)
     colors = np.zeros((len(views), len(v), 3), np.float32)
