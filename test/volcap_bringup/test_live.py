@@ -1,6 +1,7 @@
 """`volcap live`: the graph on a looped bag with fresh stamps, admission control on. Meshes keep
 arriving from the whole rig; a fusion too slow for the input rate makes the stages drop frame
-sets, and every drop is counted. No timing thresholds: only counts. The bag plays at half speed
+sets, and every drop is counted. No timing thresholds: only counts, and each run lasts until what
+it checks has happened (a loaded machine takes longer, up to a cap). The bag plays at half speed
 (15 fps): on a loaded 2-core CI machine 4 cameras at 30 fps take the cores before any work is done
 (docs/live.md), which is what bench/live.py measures."""
 import pytest
@@ -35,21 +36,26 @@ def after_warmup(result, warmup):
     return [s for s in result['summaries'] if s['t_s'] >= warmup]
 
 
-@pytest.mark.timeout(300)
+def meshes_after_warmup(meshes: int, warmup: float, summaries_with_share: int = 0):
+    """A run's stop condition: ``meshes`` meshes arrived after the warm-up, and the controller
+    reported ``summaries_with_share`` times after it with meshes to judge (complete_share)."""
+    def done(progress: dict) -> bool:
+        shares = [s for s in progress['summaries'] if s['t_s'] >= warmup and s['complete_share'] is not None]
+        return progress['meshes_after_warmup'] >= meshes and len(shares) >= summaries_with_share
+    return done
+
+
+@pytest.mark.timeout(420)
 def test_live_graph_keeps_delivering_whole_meshes(live_bag, live_calibration):
-    result = run_live(LiveConfig(live_calibration, bag=live_bag, voxel_size=0.01, rate=0.5, seconds=30, warmup_s=8,
-                                 probe=True))
+    # the rate is bench/live.py's to measure (65-69 meshes in 30 s on an idle 2-core machine, 2 in
+    # a loaded CI run); here meshes keep coming after the warm-up, where a stalled graph gives none
+    result = run_live(LiveConfig(live_calibration, bag=live_bag, voxel_size=0.01, rate=0.5, seconds=240, warmup_s=8,
+                                 probe=True), stop_when=meshes_after_warmup(4, 8, summaries_with_share=2))
     assert all(c == 0 for c in result['node_exit_codes'].values()), result['node_exit_codes']
     meshes = result['meshes']
-    # 65-69 on an idle 2-core machine, 14 once in a fresh clone's suite; the rate is
-    # bench/live.py's to measure. Here: meshes keep coming,
-    # in the last third of the run too (below), where a stalled graph gives none.
-    assert len(meshes) >= 5, (len(meshes), result['summaries'][-3:])
+    assert result['meshes_in_window'] >= 4, (len(meshes), result['summaries'][-3:])
     stamps = [stamp for _, stamp, _ in meshes]
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)     # newest first, none twice
-    # still arriving in the last third of the run, not a burst at start-up
-    last_third = result['summaries'][-1]['t_s'] * 2 / 3
-    assert sum(s['meshes_per_s'] for s in result['summaries'] if s['t_s'] >= last_third) > 0
     shares = [s['complete_share'] for s in after_warmup(result, 8) if s['complete_share'] is not None]
     assert shares and sum(shares) / len(shares) > 0.5, shares
     # one process per camera
@@ -57,28 +63,26 @@ def test_live_graph_keeps_delivering_whole_meshes(live_bag, live_calibration):
                                                            'color_corrector': 0, 'tsdf_fusion': 1}
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)
 def test_an_overloaded_fusion_stays_live_and_says_so(live_bag, live_calibration):
     """2 mm voxels with every frame set admitted (admission fixed at 1): on this machine more than
     the fusion can do, on a GPU machine perhaps not. Whatever the machine, the graph stays live
-    (meshes in the last third of the run, where a stalled graph gives none), and whatever the
+    (meshes keep arriving after the warm-up, where a stalled graph gives none), and whatever the
     fusion drops is reported as trouble. How much it drops is bench/live.py's to measure; the
     drop accounting itself is test_worker's."""
     result = run_live(LiveConfig(live_calibration, bag=live_bag, voxel_size=0.002, depth_scale=1.0, every=1,
-                                 rate=0.5, seconds=24, warmup_s=8, probe=True))
+                                 rate=0.5, seconds=240, warmup_s=8, probe=True),
+                      stop_when=meshes_after_warmup(2, 8, summaries_with_share=2))
     assert all(c == 0 for c in result['node_exit_codes'].values()), result['node_exit_codes']
     summaries = after_warmup(result, 8)
     assert {s['admit_every'] for s in summaries} == {1}
-    last_third = result['summaries'][-1]['t_s'] * 2 / 3
-    assert sum(s['meshes_per_s'] for s in result['summaries'] if s['t_s'] >= last_third) > 0, \
-        result['summaries'][-3:]
-    assert result['meshes']
+    assert result['meshes_in_window'] >= 2, result['summaries'][-3:]
     for s in summaries:
         if s['drops_per_s']['tsdf_fusion']['dropped'] > 0:
             assert s['trouble'], s
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)
 def test_a_recorded_wire_feeds_the_fusion_host_alone(live_bag, live_calibration, tmp_path):
     """`volcap wire` records what the camera hosts send; `volcap live --bag WIREBAG` starts only
     the fusion host on it (no camera pipeline), and meshes come out in stamp order from every
@@ -96,8 +100,8 @@ def test_a_recorded_wire_feeds_the_fusion_host_alone(live_bag, live_calibration,
         first = next(bag.messages(['cam0/' + wire.WIRE_DEPTH])).decode()
         info = next(bag.messages(['cam0/' + wire.WIRE_DEPTH_INFO])).decode()
     assert first.format == '16UC1; compressedDepth png' and 0 < info.roi.width < info.width
-    result = run_live(LiveConfig(live_calibration, bag=tmp_path / 'wire', voxel_size=0.01, rate=0.5, seconds=20,
-                                 warmup_s=6, probe=True))
+    result = run_live(LiveConfig(live_calibration, bag=tmp_path / 'wire', voxel_size=0.01, rate=0.5, seconds=240,
+                                 warmup_s=6, probe=True), stop_when=meshes_after_warmup(3, 6, summaries_with_share=2))
     assert all(c == 0 for c in result['node_exit_codes'].values()), result['node_exit_codes']
     assert set(result['node_exit_codes']) - {'volcap_renderer_probe'} == {'bag_player', 'tsdf_fusion'}
     stamps = [stamp for _, stamp, _ in result['meshes']]

@@ -309,6 +309,37 @@ def test_color_models_fit_a_camera_response_and_leave_one_out_picks_a_matrix():
         assert delta_e2000(refined.apply(measured), ref).mean() < delta_e2000(linear_only.apply(measured), ref).mean()
 
 
+def test_lab_and_the_lab_refinement_match_colour_science_and_scipy():
+    """``linear_to_lab`` is colour-science's XYZ_to_Lab (D65, sRGB primaries) in plain numpy; the
+    CIELAB refinement's batched Jacobian gives the fit scipy's own '2-point' Jacobian gives."""
+    import colour
+
+    from volcap_calib import color as calib_color
+    from volcap_core.color import linear_to_lab
+    rng = np.random.default_rng(4)
+    linear = np.concatenate([rng.random((500, 3)), rng.random((50, 3)) * 0.005, [[0, 0, 0], [1, 1, 1]]])
+    srgb = colour.RGB_COLOURSPACES['sRGB']
+    d65 = colour.CCS_ILLUMINANTS['CIE 1931 2 Degree Standard Observer']['D65']
+    expected = colour.XYZ_to_Lab(linear @ srgb.matrix_RGB_to_XYZ.T, d65)
+    assert np.abs(linear_to_lab(linear) - expected).max() < 1e-10
+    assert np.abs(linear_to_lab(linear.reshape(24, 23, 3)) - expected.reshape(24, 23, 3)).max() < 1e-10
+    ref = reference_srgb8() / 255.0
+    measured = _camera_response(ref)
+    real = calib_color.least_squares
+
+    def scipy_jacobian(*args, **kwargs):
+        kwargs.pop('jac', None)
+        return real(*args, **kwargs)
+    for method in ('matrix_3x3', 'root_polynomial_3', 'gamma_3x3'):
+        ours = fit_model(method, measured, ref)
+        calib_color.least_squares = scipy_jacobian
+        try:
+            theirs = fit_model(method, measured, ref)
+        finally:
+            calib_color.least_squares = real
+        assert np.abs(ours.apply(measured) - theirs.apply(measured)).max() < 1e-4, method
+
+
 def test_color_fit_refuses_bad_samples():
     ref = reference_srgb8() / 255.0
     bad = ref.copy()

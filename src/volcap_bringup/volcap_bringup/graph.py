@@ -127,7 +127,10 @@ class RunConfig:
                                '2.7 mm against 1.3 mm at 4 mm voxels on the demo bag)')
     split_stages: bool = setting(False, 'each camera\'s depth filter and colour corrector as two nodes (else one '
                                  'camera_pipeline per camera)')
-    settle_s: float = 10.0            # after playback, wait this long with no new mesh before stopping
+    # after playback, wait this long with no new mesh before stopping: longer than the fusion's
+    # offline frame_timeout_ms (10 s), which an incomplete last frame set waits out first. A run
+    # whose every capture set arrives stops at once, so only a lossy run pays for it.
+    settle_s: float = 30.0
     progress: bool = True
 
 

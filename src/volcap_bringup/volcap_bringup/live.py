@@ -143,9 +143,13 @@ def _process_cpu_s(procs: dict[str, psutil.Process]) -> dict[str, float]:
     return out
 
 
-def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) -> dict:
-    """Runs the live graph for ``cfg.seconds`` (or until Ctrl-C). Returns the
-    controller's summaries, the probe's meshes and each process's CPU seconds after the warm-up."""
+def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None,
+             stop_when: Callable[[dict], bool] | None = None) -> dict:
+    """Runs the live graph for ``cfg.seconds`` (or until Ctrl-C), or until ``stop_when(progress)``
+    holds: progress is ``{'meshes': all the probe's meshes, 'meshes_after_warmup': those that
+    arrived after the warm-up, 'summaries': the controller's summaries so far}`` (a condition to
+    wait on, so a loaded machine takes longer instead of failing). Returns the controller's
+    summaries, the probe's meshes and each process's CPU seconds after the warm-up."""
     calibration = Calibration.load(cfg.calibration)
     nodes, cameras, layout = live_nodes(cfg, calibration)
     summaries: list[dict] = []
@@ -182,14 +186,18 @@ def run_live(cfg: LiveConfig, on_summary: Callable[[dict], None] | None = None) 
             started = clock['started'] = time.monotonic()
             warm = started + cfg.warmup_s
 
-            # never done: spins for cfg.seconds (or until Ctrl-C), noting the CPU times once the
+            # spins for cfg.seconds (or until Ctrl-C, or stop_when), noting the CPU times once the
             # warm-up has passed; a node process that exits ends the run (GraphError)
-            def warmed_up() -> bool:
+            def done() -> bool:
                 if not window and time.monotonic() >= warm:
                     window.update(cpu_start=_process_cpu_s(ps), t=time.monotonic(),
                                   meshes_before=len(probe.meshes) if probe else 0)
-                return False
-            session.spin_until(warmed_up, cfg.seconds, fail_on_exit=True)
+                if stop_when is None:
+                    return False
+                meshes = probe.meshes if probe else []
+                after = len(meshes) - window['meshes_before'] if window else 0
+                return stop_when({'meshes': meshes, 'meshes_after_warmup': after, 'summaries': summaries})
+            session.spin_until(done, cfg.seconds, fail_on_exit=True)
             if window:
                 window['cpu_end'] = _process_cpu_s(ps)
                 window['s'] = time.monotonic() - window['t']

@@ -42,7 +42,7 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
               'exit_when_done': not cfg.composed, 'subscribers': [f'{t}={n}' for t, n in expected.items() if n]}
     # The nodes sit on whatever topics the bag holds (volcap's or a vendor driver's), as on a rig.
     maps = {c: stream_remaps(c, layout[c]) for c in cameras}
-    filters = {c: {'reliable': True, **maps[c][1]} for c in cameras}
+    filters = {c: {'reliable': True, 'pair_timeout_ms': 10_000.0, **maps[c][1]} for c in cameras}
     if cfg.half_depth:
         # Half-size clean depth puts a 6 mm pixel footprint under 4 mm voxels (2.7 mm accuracy
         # on the demo bag, 1.3 mm at full size), for 5 ms less cleaning per camera.

@@ -23,6 +23,9 @@ from volcap_core.color import (
 )
 from volcap_core.errors import BadInput
 
+# scipy's relative step for '2-point' differences: the square root of the float64 epsilon
+FORWARD_STEP = float(np.sqrt(np.finfo(np.float64).eps))
+
 
 def _linear_fit(method: str, measured: np.ndarray, reference: np.ndarray) -> ColorModel:
     """The closed-form fit: paper Eqs. 9-10, or least squares in linear RGB."""
@@ -56,15 +59,32 @@ def _refine_in_lab(model: ColorModel, measured: np.ndarray, reference: np.ndarra
     def unpack(x):
         return ColorModel(model.method, x[:size].reshape(shape), tuple(float(v) for v in x[size:]) if gamma else None)
 
+    # Only the gamma model's features depend on the parameters: the others' are computed once.
+    features = None if gamma else model_features(model.method, linear)
+
+    def corrected(x):
+        return unpack(x).apply_linear(linear) if gamma else features @ x[:size].reshape(shape).T
+
     def residual(x):
-        return (linear_to_lab(unpack(x).apply_linear(linear)) - target).ravel()
+        return (linear_to_lab(corrected(x)) - target).ravel()
+
+    def jacobian(x):
+        # Forward differences with scipy's '2-point' steps, every perturbed model's colours
+        # converted to Lab in one call: colour-science's conversion costs ~7 ms a call whatever
+        # its size, and a Jacobian of the cubic root-polynomial took 40 of them (34 of the 39 s
+        # its leave-one-patch-out score took; docs/calib.md).
+        step = FORWARD_STEP * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
+        step = np.where(x + step > upper, -step, step)
+        perturbed = x + np.diag(step)
+        labs = linear_to_lab(np.stack([corrected(x)] + [corrected(xp) for xp in perturbed]))
+        return ((labs[1:] - labs[0]).reshape(len(x), -1) / step[:, None]).T
 
     x0 = np.concatenate([model.matrix.ravel(), model.exponents if gamma else ()])
     lower = np.concatenate([np.full(size, -np.inf), np.full(3 if gamma else 0, 0.5)])
     upper = np.concatenate([np.full(size, np.inf), np.full(3 if gamma else 0, 2.0)])
     if len(x0) >= residual(x0).size:
         return model   # too few patches to refine this many parameters
-    return unpack(least_squares(residual, x0, bounds=(lower, upper), x_scale='jac').x)
+    return unpack(least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), x_scale='jac').x)
 
 
 def fit_model(method: str, measured: np.ndarray, reference: np.ndarray, perceptual: bool = True,

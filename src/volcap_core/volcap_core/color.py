@@ -45,10 +45,27 @@ def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
     return _colour().models.eotf_inverse_sRGB(np.clip(rgb, 0.0, 1.0))
 
 
+@cache
+def _d65_white_xyz() -> np.ndarray:
+    d65, _ = _d65_and_srgb_to_xyz()
+    return _colour().xyY_to_XYZ(np.array([d65[0], d65[1], 1.0]))
+
+
+# CIE 1976 lightness: the cube root above (6/29)^3, the linear segment below it
+_LAB_EPSILON, _LAB_KAPPA = 216.0 / 24389.0, 24389.0 / 27.0
+
+
 def linear_to_lab(linear: np.ndarray) -> np.ndarray:
-    """CIELAB (D65) of linear sRGB values (clipped to [0, 1], as the encoded image would be)."""
-    d65, srgb_to_xyz = _d65_and_srgb_to_xyz()
-    return _colour().XYZ_to_Lab(np.clip(linear, 0.0, 1.0) @ srgb_to_xyz.T, d65)
+    """CIELAB (D65) of linear sRGB values (clipped to [0, 1], as the encoded image would be).
+
+    colour-science's matrix and white point, the CIE formula in plain numpy: ``colour.XYZ_to_Lab``
+    costs ~7 ms a call whatever its size (its domain-range machinery), which made it most of the
+    chart fit's time (thousands of small calls); equal to it within 1e-10 (test_color.py)."""
+    _, srgb_to_xyz = _d65_and_srgb_to_xyz()
+    xyz = np.clip(np.asarray(linear, np.float64), 0.0, 1.0) @ (srgb_to_xyz.T / _d65_white_xyz())
+    f = np.where(xyz > _LAB_EPSILON, np.cbrt(xyz), (_LAB_KAPPA * xyz + 16.0) / 116.0)
+    fx, fy, fz = f[..., 0], f[..., 1], f[..., 2]
+    return np.stack([116.0 * fy - 16.0, 500.0 * (fx - fy), 200.0 * (fy - fz)], axis=-1)
 
 
 def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:

@@ -90,7 +90,8 @@ class DepthFilter(Node):
         self.session = self.make_session(cfg, background)
         self.sync = FrameSetSynchronizer([self.camera], ('color', 'depth'),
                                          tolerance_ns=tolerance_ns_from_ms(self.node_cfg.sync_tolerance_ms),
-                                         timeout_ns=500_000_000, max_pending=4)
+                                         timeout_ns=int(self.node_cfg.pair_timeout_ms * 1e6),
+                                         max_pending=4)
         self.figures_requested = False
         self.processed = self.skipped = 0
         self.empty_streak = 0      # consecutive cleaned frames with no depth left

@@ -48,6 +48,11 @@ class DepthFilterNodeConfig:
     sync_tolerance_ms: float = setting(0.0, 'stamp tolerance between colour and depth, ms (0: just under half the frame '
                                        'period the stamps show)', 0.0, 100.0,
                                        read_only=True)
+    # Live, a colour image waits at most this long for its depth (and four newer frames push it
+    # out sooner); offline the run waits longer, as a loaded host may serve the two streams
+    # seconds apart and every frame counts.
+    pair_timeout_ms: float = setting(500.0, 'how long an image waits for its colour or depth partner, ms (wall '
+                                     'time; offline replay: longer)', 1.0, 600_000.0, read_only=True)
     max_held_frames: int = setting(4, 'image pairs kept while their camera_info or the rig is still to come',
                                    0, 100, read_only=True)
     reliable: bool = setting(False, 'subscribe reliably (offline replay: lose no frame)', read_only=True)
