@@ -127,8 +127,8 @@ class RunConfig:
                                '2.7 mm against 1.3 mm at 4 mm voxels on the demo bag)')
     split_stages: bool = setting(False, 'each camera\'s depth filter and colour corrector as two nodes (else one '
                                  'camera_pipeline per camera)')
-    # after playback, wait this long with no new mesh before stopping: longer than the fusion's
-    # offline frame_timeout_ms (10 s), which an incomplete last frame set waits out first. A run
+    # after playback, wait this long with no new mesh before stopping: longer than run_graph's
+    # OFFLINE_TIMEOUT_MS (10 s), which an incomplete last frame set waits out first. A run
     # whose every capture set arrives stops at once, so only a lossy run pays for it.
     settle_s: float = 30.0
     progress: bool = True

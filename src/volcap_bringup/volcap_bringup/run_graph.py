@@ -28,6 +28,9 @@ from .graph import NodeSpec, RunConfig, camera_nodes, rig_graph, stream_remaps
 from .probe import RendererProbe
 from .session import GraphSession, spec_name
 
+# Offline, a frame set waits this long for a late camera and an image for its partner: a loaded
+# host may serve streams seconds apart, and every frame counts.
+OFFLINE_TIMEOUT_MS = 10_000.0
 STABILITY_FRAMES = 30      # metrics.json scores the frame-to-frame change of this many first frames (0.2 s a pair)
 
 
@@ -36,13 +39,13 @@ def graph_parameters(bag: Path, rig: Rig, cameras: list[str], frames_dir: Path, 
     """(package, executable, namespace, parameters, remaps) of every node of the graph."""
     # Offline, every frame set counts: reliable inputs, a long frame-set timeout, a deep queue.
     fusion = {'voxel_size': cfg.voxel_size, 'output_dir': str(frames_dir), 'reliable': True, 'in_order': False,
-              'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': 10_000.0}
+              'depth_upsample': cfg.depth_upsample, 'queue_size': 100, 'frame_timeout_ms': OFFLINE_TIMEOUT_MS}
     expected = expected_subscribers(cameras, layout, played, probe=True, split_stages=cfg.split_stages)
     player = {'bag': str(bag), 'rate': cfg.rate, 'topics': played, 'wait_for_subscribers': 60.0,
               'exit_when_done': not cfg.composed, 'subscribers': [f'{t}={n}' for t, n in expected.items() if n]}
     # The nodes sit on whatever topics the bag holds (volcap's or a vendor driver's), as on a rig.
     maps = {c: stream_remaps(c, layout[c]) for c in cameras}
-    filters = {c: {'reliable': True, 'pair_timeout_ms': 10_000.0, **maps[c][1]} for c in cameras}
+    filters = {c: {'reliable': True, 'pair_timeout_ms': OFFLINE_TIMEOUT_MS, **maps[c][1]} for c in cameras}
     if cfg.half_depth:
         # Half-size clean depth puts a 6 mm pixel footprint under 4 mm voxels (2.7 mm accuracy
         # on the demo bag, 1.3 mm at full size), for 5 ms less cleaning per camera.

@@ -60,7 +60,7 @@ def linear_to_lab(linear: np.ndarray) -> np.ndarray:
 
     colour-science's matrix and white point, the CIE formula in plain numpy: ``colour.XYZ_to_Lab``
     costs ~7 ms a call whatever its size (its domain-range machinery), which made it most of the
-    chart fit's time (thousands of small calls); equal to it within 1e-10 (test_color.py)."""
+    chart fit's time (thousands of small calls); equal to it within 1e-10 (test_calib.py)."""
     _, srgb_to_xyz = _d65_and_srgb_to_xyz()
     xyz = np.clip(np.asarray(linear, np.float64), 0.0, 1.0) @ (srgb_to_xyz.T / _d65_white_xyz())
     f = np.where(xyz > _LAB_EPSILON, np.cbrt(xyz), (_LAB_KAPPA * xyz + 16.0) / 116.0)
