@@ -2,9 +2,10 @@
 
 Per camera, over a sliding window: delivered rate, dropped frames (gaps in the stamps of more
 than 1.5 frame periods), the colour-depth stamp offset, the camera's offset from the rest of
-the rig (its depth stamp minus the median of every camera's nearest depth stamp) and how
-fast that offset changes (drift, ms per second of capture: a camera whose sync cable or clock
-slips shows here long before its frames stop pairing). Per rig: each frame set's stamp spread.
+the rig (its depth stamp minus the median of every camera's nearest depth stamp, modulo the
+frame period so that a frame the monitor lost is no offset) and how fast that offset changes
+(drift, ms per second of capture: a camera whose sync cable or clock slips shows here long
+before its frames stop pairing). Per rig: each frame set's stamp spread.
 No ROS: ``volcap monitor`` feeds it from subscriptions, tests from plain numbers.
 """
 from __future__ import annotations
@@ -112,24 +113,29 @@ class RigHealth:
             colors = np.array([s for _, s in self._stamps[(cam, 'color')]], dtype=np.int64)
             if len(colors) and len(depth[cam]):
                 h.color_depth_offset_ms = float(np.median(colors - _nearest(depth[cam], colors))) / 1e6
-            self._rig_offset(cam, depth, h)
+            self._rig_offset(cam, depth, h, period)
             if cam in silent:
                 h.silent_s = round(silent[cam], 2)
                 h.warnings.append(f'silent for {silent[cam]:.1f} s: no frames (camera, driver or filter down?)')
             self._warn(h, period, tolerance)
             out[cam] = h
-        spread = _spreads(depth)
+        spread = _spreads(depth, period)
         return RigHealthReport(out, period / 1e6, tolerance / 1e6,
                                float(np.median(spread)) / 1e6 if spread.size else None,
                                float(spread.max()) / 1e6 if spread.size else None)
 
-    def _rig_offset(self, cam: str, depth: dict, h: CameraHealth) -> None:
+    def _rig_offset(self, cam: str, depth: dict, h: CameraHealth, period: int) -> None:
         own = depth[cam]
         rig = [depth[c] for c in self.cameras if len(depth[c])]
         if len(rig) < 2 or len(own) < 2:
             return
-        # the median over every camera (itself included): one drifting camera moves it not at all
-        offsets = own - np.median(np.stack([_nearest(d, own) for d in rig]), axis=0)
+        # A frame the monitor lost (or one from before it joined) makes the nearest stamp a whole
+        # period off: each difference is taken modulo the period, so only the sub-period offset
+        # counts, then the median over every camera (itself included), which one drifting camera
+        # moves not at all. Unwrapped over time, a camera drifting past half a period stays a line.
+        differences = np.stack([_nearest(d, own) for d in rig]) - own
+        wrapped = (differences + period // 2) % period - period // 2
+        offsets = np.unwrap(-np.median(wrapped, axis=0), period=period)
         h.rig_offset_ms = float(offsets[-1]) / 1e6
         t = (own - own[0]) / 1e9
         if t[-1] >= 2.0:   # a slope needs a few seconds of capture
@@ -220,11 +226,13 @@ def _nearest(sorted_stamps: np.ndarray, queries: np.ndarray) -> np.ndarray:
     return np.where(np.abs(queries - before) <= np.abs(after - queries), before, after)
 
 
-def _spreads(depth: dict[str, np.ndarray]) -> np.ndarray:
-    """Per depth frame of the first camera with frames: the spread of every camera's nearest stamp."""
+def _spreads(depth: dict[str, np.ndarray], period: int) -> np.ndarray:
+    """Per depth frame of the first camera with frames: the spread of every camera's nearest stamp
+    (each taken modulo the period, as in ``_rig_offset``: a lost frame is no spread)."""
     present = [d for d in depth.values() if len(d)]
     if len(present) < 2:
         return np.zeros(0, np.int64)
     reference = present[0]
-    nearest = np.stack([_nearest(d, reference) for d in present])
-    return nearest.max(axis=0) - nearest.min(axis=0)
+    differences = np.stack([_nearest(d, reference) for d in present]) - reference
+    wrapped = (differences + period // 2) % period - period // 2
+    return wrapped.max(axis=0) - wrapped.min(axis=0)
