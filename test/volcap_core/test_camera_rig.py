@@ -27,6 +27,12 @@ def test_project_undistort_round_trip(shared_data):
     px = cam.project(rays.reshape(-1, 3) * 2.0)
     grid = np.stack(np.meshgrid(np.arange(cam.width), np.arange(cam.height)), axis=-1).reshape(-1, 2)
     assert np.abs(px - grid).max() < 1e-6
+    # computed once per lens and shared, so nobody may change it; an equal lens is the same lens
+    assert cam.pixel_rays() is rays and not rays.flags.writeable
+    with pytest.raises(ValueError):
+        rays[0, 0, 0] = 1.0
+    same = CameraModel.from_dict(cam.to_dict())
+    assert same.pixel_rays() is rays and cam.scaled(640, 360).pixel_rays().shape == (360, 640, 3)
 
 
 def test_scaled_keeps_rays():
