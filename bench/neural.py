@@ -79,7 +79,7 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
     bag, calibration = out / f'studio_seed{seed}', out / f'studio_seed{seed}.calibration.yaml'
     if not calibration.exists():
         synthesize(bag, SynthConfig(cameras=8, frames=demo.colour_frames, board_poses=demo.board_poses,
-                                    background_frames=3, seed=seed), overwrite=True)
+                                    board_layout=demo.board_layout, background_frames=3, seed=seed), overwrite=True)
         calibrate(CalibrateConfig(bag, calibration))
     rig = Calibration.load(calibration)
     t0 = time.perf_counter()

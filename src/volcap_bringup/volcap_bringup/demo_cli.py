@@ -32,13 +32,18 @@ class DemoConfig:
     colour_frames: int = setting(4, 'capture frame sets the colour steps use', 2, 1000)
     # the default training with fewer samples per D, so the demo stays a few minutes (docs/color.md)
     harmonise_epochs: int = setting(12, 'epochs of colour field E in the short neural run', 1, 10_000)
+    # E's time grows with its samples: the temporally averaged depth of 4 frame sets gives ~700 k,
+    # 83 s of E alone on 2 cores (docs/benchmarks.md, issue 29)
+    harmonise_points: int = setting(400_000, 'surface samples for colour field E in the short neural run', 1,
+                                    100_000_000)
     mapper_epochs: int = setting(60, 'epochs of each camera\'s network D in the short neural run', 1, 10_000)
     scored_frames: int = setting(5, 'fused frames scored against the ground truth', 1, 10_000)
     run_rate: float = setting(0.04, 'playback speed of the graph run (2 cores: 0.04 fuses every frame set)',
                               0.001, 10.0)
 
     def harmonise(self) -> dict:
-        return {'field_epochs': self.harmonise_epochs, 'mapper_points': 30_000, 'mapper_epochs': self.mapper_epochs}
+        return {'points': self.harmonise_points, 'field_epochs': self.harmonise_epochs, 'mapper_points': 30_000,
+                'mapper_epochs': self.mapper_epochs}
 
 
 def cmd_demo(args) -> int:
