@@ -220,7 +220,8 @@ def test_depth_a_driver_registered_survives_cleaning(k4a_bag):
     valid = aligned > 0
     borders_hole = cv2.erode(valid.view(np.uint8), np.ones((3, 3), np.uint8)) == 0
     assert borders_hole[valid].mean() > 0.9                            # the lattice of a real driver
-    assert flying_pixels(aligned, cam.color.fx)[valid].mean() > 0.99  # the failure this guards against
+    # the failure this guards against: the axis tests alone (the sparse-return rescue keeps some)
+    assert flying_pixels(aligned, cam.color.fx, FlyingPixelConfig(sparse_radius=0))[valid].mean() > 0.99
     cleaner = DepthCleaner(DepthRegistration(cam.color, cam.color, np.eye(4), (1280, 720), registered=True),
                            DepthFilterConfig())
     clean = cleaner.process(frame.color, aligned).depth

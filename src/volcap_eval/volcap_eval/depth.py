@@ -12,7 +12,10 @@ bag's clean-plate frames:
 - ``valid_kept``: valid subject surface pixels (no flying, no speckle) that reach the output;
 - ``mask_iou``: foreground mask against the GT subject at colour resolution (raw: every pixel
   with registered depth);
-- ``depth_mae_mm``: mean |depth - GT surface| of output pixels near the subject.
+- ``depth_mae_mm``: mean |depth - GT surface| of output pixels near the subject;
+- ``filled_per_frame``, ``filled_mae_mm``: raw holes amid sparse returns (dark material) given
+  depth by the cleaner, per camera frame, and that depth's mean error where it reaches the
+  output near the subject.
 
 ``filter_only`` scores the flying-pixel filter alone over the whole image (no mask, no gate).
 """
@@ -51,7 +54,7 @@ def method_config(method: str) -> DepthFilterConfig:
 class _Tally:
     counts: dict = field(default_factory=lambda: dict.fromkeys(
         ('fly', 'fly_removed', 'flagged', 'flagged_fly', 'good', 'good_kept', 'inter', 'union', 'err_sum', 'err_n',
-         'f_fly', 'f_flagged', 'f_hit', 'f_good', 'f_good_kept'), 0.0))
+         'f_fly', 'f_flagged', 'f_hit', 'f_good', 'f_good_kept', 'filled', 'filled_err_sum', 'filled_n'), 0.0))
     ms: list = field(default_factory=list)
 
     def add(self, **values):
@@ -66,6 +69,8 @@ class _Tally:
         return {'flying_recall': ratio('fly_removed', 'fly'), 'flying_precision': ratio('flagged_fly', 'flagged'),
                 'valid_kept': ratio('good_kept', 'good'), 'mask_iou': ratio('inter', 'union'),
                 'depth_mae_mm': round(1000 * c['err_sum'] / c['err_n'], 2) if c['err_n'] else None,
+                'filled_per_frame': round(c['filled'] / max(len(self.ms), 1)),
+                'filled_mae_mm': round(1000 * c['filled_err_sum'] / c['filled_n'], 2) if c['filled_n'] else None,
                 'filter_only': {'flying_recall': ratio('f_hit', 'f_fly'), 'flying_precision': ratio('f_hit', 'f_flagged'),
                                 'valid_kept': ratio('f_good_kept', 'f_good')},
                 'ms_per_frame': round(float(np.median(self.ms)), 2) if self.ms else None,
@@ -138,7 +143,11 @@ def _score(tally: _Tally, res, truth: dict, frame, cleaner: DepthCleaner) -> Non
     tally.add(fly=(fly & near).sum(), fly_removed=(fly & near & ~kept).sum(), flagged=flagged.sum(),
               flagged_fly=(flagged & fly).sum(), good=good.sum(), good_kept=(good & kept).sum(),
               inter=(pred & gt_mask).sum(), union=(pred | gt_mask).sum(),
-              err_sum=np.abs(frame.depth[err_px] - clean[err_px]).sum(), err_n=err_px.sum(),
+              # the depth each pixel carries into the output: its return, or the fill of a hole
+              err_sum=np.abs(np.where(res.filled > 0, res.filled, frame.depth)[err_px] - clean[err_px]).sum(),
+              err_n=err_px.sum(), filled=(res.filled > 0).sum(),
+              filled_err_sum=np.abs(res.filled[err_px & (res.filled > 0)] - clean[err_px & (res.filled > 0)]).sum(),
+              filled_n=(err_px & (res.filled > 0)).sum(),
               f_fly=fly.sum(), f_flagged=res.flying.sum(), f_hit=(res.flying & fly).sum(),
               f_good=truth['good_all'].sum(), f_good_kept=(truth['good_all'] & ~res.flying).sum())
 

@@ -13,7 +13,7 @@ import numpy as np
 from volcap_core.errors import BadInput
 from volcap_core.settings import setting, validate
 
-from .flying import FlyingPixelConfig, fill_lattice_gaps, flying_pixels, paper_flying_pixels
+from .flying import FlyingPixelConfig, fill_lattice_gaps, fill_sparse_returns, flying_pixels, paper_flying_pixels
 from .mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
 from .registration import DepthRegistration, Registered
 from .temporal import TemporalFilter
@@ -53,6 +53,7 @@ class CleanResult:
     depth: np.ndarray            # (h, w) float32 metres, colour geometry at output size, 0 = none
     mask: np.ndarray | None      # (H, W) bool foreground at colour resolution (None: no mask)
     flying: np.ndarray           # (Hd, Wd) bool raw pixels the flying-pixel filter removed
+    filled: np.ndarray           # (Hd, Wd) float32 depth given to raw holes amid sparse returns, 0 = none
     registered: Registered       # where each raw pixel went (for scoring against raw-grid truth)
     source_color: np.ndarray     # (H, W, 3) uint8 colour the depth was cleaned with
     timings_ms: dict[str, float]
@@ -103,7 +104,9 @@ class DepthCleaner:
     def learn_background(self, color: np.ndarray, depth_m: np.ndarray) -> None:
         """Add one subject-free frame to the clean plate."""
         self._check(color, depth_m)
-        registered = self.registration.register(self._gate(sanitise_depth(depth_m))).depth
+        gated = self._gate(sanitise_depth(depth_m), drop=np.zeros(depth_m.shape, bool))
+        gated += self._fill(gated, np.zeros(gated.shape, bool))  # the plate's dark material as the subject's
+        registered = self.registration.register(gated).depth
         self.background.add(color, registered)
 
     def process(self, color: np.ndarray, depth_m: np.ndarray) -> CleanResult:
@@ -112,7 +115,9 @@ class DepthCleaner:
         t0 = time.perf_counter()
         depth = sanitise_depth(depth_m)
         flying = self._flying(depth)
-        gated = self._gate(depth, drop=flying)
+        gated = self._gate(depth, drop=flying)      # a new array: filled in place below
+        filled = self._fill(gated, flying)
+        gated += filled
         t['flying'] = _ms(t0)
         t0 = time.perf_counter()
         reg = self.registration.register(gated)
@@ -131,7 +136,7 @@ class DepthCleaner:
             t0 = time.perf_counter()
             clean, color, _ = self.temporal.update(clean, color)
             t['temporal'] = _ms(t0)
-        return CleanResult(clean, mask, flying, reg, color, t)
+        return CleanResult(clean, mask, flying, filled, reg, color, t)
 
     def points(self, result: CleanResult) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) float32 points in the colour optical frame and their (N, 3) uint8 colours."""
@@ -163,6 +168,16 @@ class DepthCleaner:
         else:
             found = paper_flying_pixels(tested, method.removeprefix('paper_'))
         return found & (depth > 0)
+
+    def _fill(self, gated: np.ndarray, removed: np.ndarray) -> np.ndarray:
+        """Depth for the holes amid sparse returns (dark material), with our flying-pixel filter
+        (its sparse-return settings); 0 elsewhere."""
+        # Depth a driver registered keeps its lattice of empty rows and columns in the output
+        # (fill_lattice_gaps bridges them for the tests only); the fill cannot tell them from
+        # dark material's dropouts there, so it is left to native depth.
+        if self.cfg.flying_method != 'volcap' or self.registration.registered:
+            return np.zeros_like(gated)
+        return fill_sparse_returns(gated, removed, self.registration.depth_model.fx, self.cfg.flying)
 
     def _gate(self, depth: np.ndarray, drop: np.ndarray | None = None) -> np.ndarray:
         """Depth with ``drop`` pixels and, if the gate is on, out-of-range ones set to 0."""
