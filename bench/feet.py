@@ -55,7 +55,9 @@ def main():
     gt_v, gt_t = np.asarray(truth.vertices), np.asarray(truth.triangles)
     floor = transform_points(T_sw, gt_v)[:, 2].min()
 
-    stages = np.zeros((len(names), 5), np.int64)   # faced, returned, accurate, kept by the filter, in the output
+    # faced, returned, accurate, kept by the filter, in the output; faced with depth in the output
+    # (a return or a fill of the holes between sparse returns)
+    stages = np.zeros((len(names), 6), np.int64)
     for cam, c in cleaned['volcap'].items():
         depth_model = c.frame.depth_model
         clean = arrays[f'{cam}/depth_clean']
@@ -75,7 +77,7 @@ def main():
         for k in range(len(names)):
             sel = band == k
             stages[k] += [sel.sum(), (sel & returned).sum(), (sel & accurate).sum(), (sel & kept).sum(),
-                          (sel & accurate & output).sum()]
+                          (sel & accurate & output).sum(), (sel & output).sum()]
 
     dropped = gt.arrays(frame['index'], suffix='/dropped')
     sensors = [(rc.depth, gt.T_world_depth(rc.name), rc.color, gt.T_world_color(rc.name),
@@ -97,19 +99,19 @@ def main():
                             if (seen & (sample_band == k)).any() else None for k in range(len(names))]
 
     print(f'{Path(args.bag).name}, capture frame set {frame["index"]}; heights above the subject\'s lowest point')
-    header = 'band          faced  returned  accurate  kept(flying)  in output | observable  ' + '  '.join(
+    header = 'band          faced  returned  accurate  kept(flying)  in output  covered | observable  ' + '  '.join(
         f'fused@{t:g}' for t in args.weight_threshold)
     print(header)
     rows = []
     for k, name in enumerate(names):
-        faced, returned, accurate, kept, output = (int(x) for x in stages[k])
+        faced, returned, accurate, kept, output, covered = (int(x) for x in stages[k])
         observable_k = int((seen & (sample_band == k)).sum())
         pct = lambda a, b: f'{100 * a / b:5.1f} %' if b else '    -  '
         print(f'{name:12s} {faced:6d}  {pct(returned, faced)}  {pct(accurate, returned)}  {pct(kept, accurate)}'
-              f'     {pct(output, accurate)} | {observable_k:9d}  ' + '  '.join(
+              f'     {pct(output, accurate)}  {pct(covered, faced)} | {observable_k:9d}  ' + '  '.join(
                   f'{100 * fused[t][k]:7.1f} %' if fused[t][k] is not None else '      -  ' for t in args.weight_threshold))
         rows.append({'band': name, 'faced': faced, 'returned': returned, 'accurate': accurate, 'kept_by_flying_filter':
-                     kept, 'in_cleaned_output': output, 'observable_samples': observable_k,
+                     kept, 'in_cleaned_output': output, 'covered_in_output': covered, 'observable_samples': observable_k,
                      'fused_within_5mm': {str(t): fused[t][k] for t in args.weight_threshold}})
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
