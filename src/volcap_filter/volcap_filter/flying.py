@@ -222,7 +222,11 @@ def _keep_sparse(zp, r, slope, base, quad, min_support, keep):
     surface (within a surface step per pixel of distance) in each of the four quadrants around
     it. A row of mixed pixels along an edge fills two or three (the row, the surface on one
     side): with three required, such rows along the synthetic studio's shoes came back (flying
-    recall 0.985 -> 0.979), with four none did. ``zp`` is the depth padded by ``r`` zero pixels."""
+    recall 0.985 -> 0.979). With four, 2 of its ~2950 mixed pixels a frame set come back (3 and
+    7 cm off their surface, where a dense surface and dark material meet; recall 0.9854 ->
+    0.9847). Counting only sparse returns as support brings those back too, but keeps so few
+    shoe returns that the lowest 6 cm fuse 3-6 % instead of 26-28 %. ``zp`` is the depth padded
+    by ``r`` zero pixels."""
     h, w = keep.shape
     for v in range(h):
         y = v + r
