@@ -346,9 +346,14 @@ def fill_sparse_returns(depth_m: np.ndarray, removed: np.ndarray, focal_px: floa
     # dense surface beside dark material (the floor behind a shoe) is never extended into it.
     sparse = in_3x3 <= np.where(valid > 0, 4, 3)
     support = (valid > 0) & sparse
-    fillable = (valid == 0) & sparse & ~np.asarray(removed, bool)
-    slope = float(np.tan(np.radians(cfg.max_incidence_deg)) / focal_px)
     r = cfg.sparse_radius
+    # only holes with enough support in reach are visited: most holes are empty regions, and
+    # visiting every one cost 11.6 ms on a 640x576 studio frame, this 2.6 ms (bench/stability.py
+    # reports the cleaning's whole cost)
+    reach = cv2.boxFilter(support.view(np.uint8), cv2.CV_16U, (2 * r + 1, 2 * r + 1), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    fillable = (valid == 0) & sparse & ~np.asarray(removed, bool) & (reach >= cfg.sparse_support)
+    slope = float(np.tan(np.radians(cfg.max_incidence_deg)) / focal_px)
     _fill_sparse(np.pad(z, r), np.pad(support, r), fillable, r, slope, cfg.noise_base, cfg.noise_quad,
                  cfg.sparse_support, out)
     return out

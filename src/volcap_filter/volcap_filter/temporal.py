@@ -6,7 +6,11 @@ that stands still. Per output pixel a running mean of depth (and colour) is kept
 the frames since the pixel last moved, up to ``1 / alpha`` of them, then an exponential average
 with weight ``alpha``. A pixel restarts at its new value when
 
-- it has no depth now or had none (holes, the subject's edge);
+- it had no depth (the subject's edge, a hole);
+- it has no depth now, unless it is *held*: a pixel with a history whose colour and
+  neighbourhood are still keeps its mean for as many frames as it has averaged, less one each
+  time (dark material returns a random few of its pixels each frame, and without the hold its
+  surface comes and goes);
 - its change is beyond ``pixel_sigmas`` of the time-of-flight noise sigma(z) (a step, an arm);
 - the *mean* change over a ``window`` x ``window`` neighbourhood, in units of that noise, is
   beyond ``motion_sigmas`` standard errors of such a mean: single pixels cannot tell 2 mm of
@@ -50,7 +54,9 @@ def _average(z, prev, count, r, sum_r, support, color, state, out, sy, sx, max_c
         for u in range(w):
             a, b, n, m = z[v, u], prev[v, u], count[v, u], support[v, u]
             ok = False
-            if a > 0 and b > 0 and m >= MIN_SUPPORT and abs(r[v, u]) <= PIXEL_SIGMAS:
+            # a hole where a pixel with a history had depth: held (below) if nothing moved
+            hold = a <= 0 and b > 0 and n >= 2.0 and with_color
+            if (a > 0 or hold) and b > 0 and m >= MIN_SUPPORT and (hold or abs(r[v, u]) <= PIXEL_SIGMAS):
                 # the mean change's standard error: the new frame's noise and what is left in the mean
                 spread = np.sqrt((1.0 + 1.0 / max(n, 1.0)) / m)
                 ok = abs(sum_r[v, u] / m) <= MOTION_SIGMAS * spread
@@ -60,6 +66,19 @@ def _average(z, prev, count, r, sum_r, support, color, state, out, sy, sx, max_c
                         for k in range(3):
                             if abs(np.float32(color[y, x, k]) - state[y, x, k]) > COLOR_LEVELS:
                                 ok = False
+            if ok and hold:
+                # The sensor missed a still surface (dark material returns a random few of its
+                # pixels each frame): its mean stands in, for one frame fewer each time, and the
+                # colour state stays. A subject that left shows a new colour and is not held.
+                z[v, u] = b
+                count[v, u] = n - 1.0
+                still[v, u] = True
+                if with_color:
+                    for y in range(v * sy, v * sy + sy):
+                        for x in range(u * sx, u * sx + sx):
+                            for k in range(3):
+                                out[y, x, k] = np.uint8(min(max(state[y, x, k] + np.float32(0.5), 0.0), 255.0))
+                continue
             if ok:
                 n = min(n + 1.0, max_count)
                 wgt = np.float32(1.0) / n
