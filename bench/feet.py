@@ -14,7 +14,7 @@ then the whole set is fused (the graph's defaults, and ``--weight-threshold`` va
 and the share of the observable surface within 5 mm is given per band, as `volcap eval fusion`
 scores it.
 
-    python bench/feet.py BAG [--bands 0,0.06,0.09,0.15,0.5] [--weight-threshold 0.5 1.0]
+    python bench/feet.py BAG [--bands 0,0.06,0.09,0.15,0.5] [--weight-threshold 0.5 1.0] [--sparse-radius 0]
 """
 import argparse
 import json
@@ -42,13 +42,18 @@ def main():
     ap.add_argument('--bands', default='0,0.06,0.09,0.15,0.5,2.0', help='height band edges (m)')
     ap.add_argument('--weight-threshold', type=float, nargs='+', default=[0.5, 1.0])
     ap.add_argument('--json', default='bench_out/feet.json')
+    ap.add_argument('--sparse-radius', type=int, help='the flying-pixel filter\'s sparse_radius (0: before dark '
+                    'material\'s sparse returns were kept and closed)')
     args = ap.parse_args()
     bands = [float(b) for b in args.bands.split(',')]
     names = [f'{bands[k]:.2f}-{bands[k + 1]:.2f} m' for k in range(len(bands) - 1)]
     gt = GroundTruth(args.bag)
     T_sw = np.asarray(gt.doc['T_studio_world'], float)
     captures = gt.frames_in('capture')
-    fs, cleaned = next(cleaned_frame_sets(args.bag, {'volcap': DepthFilterConfig()}, limit=1))
+    cfg = DepthFilterConfig()
+    if args.sparse_radius is not None:
+        cfg.flying.sparse_radius = args.sparse_radius
+    fs, cleaned = next(cleaned_frame_sets(args.bag, {'volcap': cfg}, limit=1))
     frame = next(f for f in captures if abs(f['stamp_ns'] - fs.stamp_ns) < 20_000_000)
     arrays = gt.arrays(frame['index'])
     truth = gt.subject_mesh(frame['index'])
