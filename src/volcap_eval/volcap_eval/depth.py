@@ -140,14 +140,16 @@ def _score(tally: _Tally, res, truth: dict, frame, cleaner: DepthCleaner) -> Non
         c = cleaner.registration.color_model
         pred = cv2.resize((res.depth > 0).view(np.uint8), (c.width, c.height), interpolation=cv2.INTER_NEAREST) > 0
     gt_mask = truth['color_subject']
+    filled = res.filled if res.filled is not None else np.zeros(frame.depth.shape, np.float32)
+    has_fill = filled > 0
     tally.add(fly=(fly & near).sum(), fly_removed=(fly & near & ~kept).sum(), flagged=flagged.sum(),
               flagged_fly=(flagged & fly).sum(), good=good.sum(), good_kept=(good & kept).sum(),
               inter=(pred & gt_mask).sum(), union=(pred | gt_mask).sum(),
               # the depth each pixel carries into the output: its return, or the fill of a hole
-              err_sum=np.abs(np.where(res.filled > 0, res.filled, frame.depth)[err_px] - clean[err_px]).sum(),
-              err_n=err_px.sum(), filled=(res.filled > 0).sum(),
-              filled_err_sum=np.abs(res.filled[err_px & (res.filled > 0)] - clean[err_px & (res.filled > 0)]).sum(),
-              filled_n=(err_px & (res.filled > 0)).sum(),
+              err_sum=np.abs(np.where(has_fill, filled, frame.depth)[err_px] - clean[err_px]).sum(),
+              err_n=err_px.sum(), filled=has_fill.sum(),
+              filled_err_sum=np.abs(filled[err_px & has_fill] - clean[err_px & has_fill]).sum(),
+              filled_n=(err_px & has_fill).sum(),
               f_fly=fly.sum(), f_flagged=res.flying.sum(), f_hit=(res.flying & fly).sum(),
               f_good=truth['good_all'].sum(), f_good_kept=(truth['good_all'] & ~res.flying).sum())
 

@@ -211,6 +211,23 @@ def _fill_gaps(z, slope, base, quad, max_gap, out):
                     break
 
 
+@numba.njit(cache=True, inline='always')
+def _quadrant(dx, dy):
+    """The bit of the half-open quadrant (dx, dy) lies in: every neighbour in exactly one."""
+    if dx > 0 and dy >= 0:
+        return 1
+    if dx <= 0 and dy > 0:
+        return 2
+    if dx < 0 and dy <= 0:
+        return 4
+    return 8
+
+
+@numba.njit(cache=True, inline='always')
+def _quadrants(bits):
+    return (bits & 1) + ((bits >> 1) & 1) + ((bits >> 2) & 1) + ((bits >> 3) & 1)
+
+
 @numba.njit(cache=True)
 def _keep_sparse(zp, r, slope, base, quad, min_support, keep):
     """Keep the valid pixels the tests above could not judge because the sensor returned too few
@@ -247,7 +264,7 @@ def _keep_sparse(zp, r, slope, base, quad, min_support, keep):
                         far |= q - p > jump
             if valid > 3 or (near and far):
                 continue
-            support, q1, q2, q3, q4 = 0, 0, 0, 0, 0
+            support, bits = 0, 0
             noise = 4.3 * sigma
             for dy in range(-r, r + 1):
                 for dx in range(-r, r + 1):
@@ -256,12 +273,8 @@ def _keep_sparse(zp, r, slope, base, quad, min_support, keep):
                         continue
                     if abs(q - p) <= slope * p * max(abs(dy), abs(dx)) + noise:
                         support += 1
-                        # half-open quadrants: every neighbour belongs to exactly one
-                        q1 |= (dx > 0) & (dy >= 0)
-                        q2 |= (dx <= 0) & (dy > 0)
-                        q3 |= (dx < 0) & (dy <= 0)
-                        q4 |= (dx >= 0) & (dy < 0)
-            keep[v, u] = support >= min_support and q1 + q2 + q3 + q4 >= 4
+                        bits |= _quadrant(dx, dy)
+            keep[v, u] = support >= min_support and bits == 15
 
 
 @numba.njit(cache=True)
@@ -277,7 +290,7 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, out):
             if not fillable[v, u]:
                 continue
             y, x = v + r, u + r
-            k, q1, q2, q3, q4 = 0, 0, 0, 0, 0
+            k, bits = 0, 0
             lo, hi = np.inf, 0.0
             for dy in range(-r, r + 1):
                 for dx in range(-r, r + 1):
@@ -286,11 +299,8 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, out):
                         xs[k], ys[k], zs[k] = dx, dy, q
                         k += 1
                         lo, hi = min(lo, q), max(hi, q)
-                        q1 |= (dx > 0) & (dy >= 0)
-                        q2 |= (dx <= 0) & (dy > 0)
-                        q3 |= (dx < 0) & (dy <= 0)
-                        q4 |= (dx >= 0) & (dy < 0)
-            if k < min_support or q1 + q2 + q3 + q4 < 3:
+                        bits |= _quadrant(dx, dy)
+            if k < min_support or _quadrants(bits) < 3:
                 continue
             m = 0.5 * (lo + hi)
             # one surface across the window: no wider than its steepest measurable incidence spans
@@ -307,19 +317,22 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, out):
                 sxy += xs[i] * ys[i]
                 sxz += xs[i] * zs[i]
                 syz += ys[i] * zs[i]
-            a = np.array([[k, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]])
-            b = np.array([sz, sxz, syz])
-            if abs(np.linalg.det(a)) < 1e-9:
+            # the normal equations [[k, sx, sy], [sx, sxx, sxy], [sy, sxy, syy]] (a, b, c) =
+            # (sz, sxz, syz), solved by Cramer's rule: no allocation per hole
+            det = k * (sxx * syy - sxy * sxy) - sx * (sx * syy - sxy * sy) + sy * (sx * sxy - sxx * sy)
+            if abs(det) < 1e-9:
                 continue
-            c = np.linalg.solve(a, b)
+            c0 = (sz * (sxx * syy - sxy * sxy) - sx * (sxz * syy - sxy * syz) + sy * (sxz * sxy - sxx * syz)) / det
+            c1 = (k * (sxz * syy - syz * sxy) - sz * (sx * syy - sxy * sy) + sy * (sx * syz - sxz * sy)) / det
+            c2 = (k * (sxx * syz - sxy * sxz) - sx * (sx * syz - sxz * sy) + sz * (sx * sxy - sxx * sy)) / det
             # the returns must lie on that plane within the sensor's noise (two surfaces a few
             # centimetres apart pass the range test above, not this one)
             sigma = base + quad * m * m
             worst = 0.0
             for i in range(k):
-                worst = max(worst, abs(zs[i] - c[0] - c[1] * xs[i] - c[2] * ys[i]))
-            if worst <= 3.0 * sigma and lo <= c[0] <= hi:   # interpolated, never extrapolated
-                out[v, u] = c[0]
+                worst = max(worst, abs(zs[i] - c0 - c1 * xs[i] - c2 * ys[i]))
+            if worst <= 3.0 * sigma and lo <= c0 <= hi:   # interpolated, never extrapolated
+                out[v, u] = c0
 
 
 def fill_sparse_returns(depth_m: np.ndarray, removed: np.ndarray, focal_px: float,
@@ -341,10 +354,10 @@ def fill_sparse_returns(depth_m: np.ndarray, removed: np.ndarray, focal_px: floa
     if cfg.sparse_radius == 0:
         return out
     valid = (z > 0).view(np.uint8)
-    in_3x3 = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    # Sparse: at most 3 of the 8 neighbours returned. Only sparse returns support a fill, so a
-    # dense surface beside dark material (the floor behind a shoe) is never extended into it.
-    sparse = in_3x3 <= np.where(valid > 0, 4, 3)
+    # Sparse: at most 3 of the 8 neighbours returned (the 3x3 sum counts the pixel itself). Only
+    # sparse returns support a fill, so a dense surface beside dark material (the floor behind a
+    # shoe) is never extended into it.
+    sparse = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT) - valid <= 3
     support = (valid > 0) & sparse
     r = cfg.sparse_radius
     # only holes with enough support in reach are visited: most holes are empty regions, and

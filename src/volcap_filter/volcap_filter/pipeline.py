@@ -53,7 +53,7 @@ class CleanResult:
     depth: np.ndarray            # (h, w) float32 metres, colour geometry at output size, 0 = none
     mask: np.ndarray | None      # (H, W) bool foreground at colour resolution (None: no mask)
     flying: np.ndarray           # (Hd, Wd) bool raw pixels the flying-pixel filter removed
-    filled: np.ndarray           # (Hd, Wd) float32 depth given to raw holes amid sparse returns, 0 = none
+    filled: np.ndarray | None    # (Hd, Wd) float32 depth given to raw holes amid sparse returns (0 = none; None: no fill ran)
     registered: Registered       # where each raw pixel went (for scoring against raw-grid truth)
     source_color: np.ndarray     # (H, W, 3) uint8 colour the depth was cleaned with
     timings_ms: dict[str, float]
@@ -104,8 +104,10 @@ class DepthCleaner:
     def learn_background(self, color: np.ndarray, depth_m: np.ndarray) -> None:
         """Add one subject-free frame to the clean plate."""
         self._check(color, depth_m)
-        gated = self._gate(sanitise_depth(depth_m), drop=np.zeros(depth_m.shape, bool))
-        gated += self._fill(gated, np.zeros(gated.shape, bool))  # the plate's dark material as the subject's
+        gated = self._gate(sanitise_depth(depth_m))      # a new array (sanitise_depth's)
+        filled = self._fill(gated, np.zeros(gated.shape, bool))
+        if filled is not None:      # the plate's dark material closed as the subject's will be
+            gated += filled
         registered = self.registration.register(gated).depth
         self.background.add(color, registered)
 
@@ -117,7 +119,8 @@ class DepthCleaner:
         flying = self._flying(depth)
         gated = self._gate(depth, drop=flying)      # a new array: filled in place below
         filled = self._fill(gated, flying)
-        gated += filled
+        if filled is not None:
+            gated += filled
         t['flying'] = _ms(t0)
         t0 = time.perf_counter()
         reg = self.registration.register(gated)
@@ -169,14 +172,14 @@ class DepthCleaner:
             found = paper_flying_pixels(tested, method.removeprefix('paper_'))
         return found & (depth > 0)
 
-    def _fill(self, gated: np.ndarray, removed: np.ndarray) -> np.ndarray:
+    def _fill(self, gated: np.ndarray, removed: np.ndarray) -> np.ndarray | None:
         """Depth for the holes amid sparse returns (dark material), with our flying-pixel filter
-        (its sparse-return settings); 0 elsewhere."""
+        (its sparse-return settings), 0 elsewhere; None where no fill runs."""
         # Depth a driver registered keeps its lattice of empty rows and columns in the output
         # (fill_lattice_gaps bridges them for the tests only); the fill cannot tell them from
         # dark material's dropouts there, so it is left to native depth.
-        if self.cfg.flying_method != 'volcap' or self.registration.registered:
-            return np.zeros_like(gated)
+        if self.cfg.flying_method != 'volcap' or self.registration.registered or self.cfg.flying.sparse_radius == 0:
+            return None
         return fill_sparse_returns(gated, removed, self.registration.depth_model.fx, self.cfg.flying)
 
     def _gate(self, depth: np.ndarray, drop: np.ndarray | None = None) -> np.ndarray:

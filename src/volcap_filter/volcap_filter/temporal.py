@@ -73,11 +73,10 @@ def _average(z, prev, count, r, sum_r, support, color, state, out, sy, sx, max_c
                 z[v, u] = b
                 count[v, u] = n - 1.0
                 still[v, u] = True
-                if with_color:
-                    for y in range(v * sy, v * sy + sy):
-                        for x in range(u * sx, u * sx + sx):
-                            for k in range(3):
-                                out[y, x, k] = np.uint8(min(max(state[y, x, k] + np.float32(0.5), 0.0), 255.0))
+                for y in range(v * sy, v * sy + sy):       # a hold has colour (the guard above)
+                    for x in range(u * sx, u * sx + sx):
+                        for k in range(3):
+                            out[y, x, k] = np.uint8(min(max(state[y, x, k] + np.float32(0.5), 0.0), 255.0))
                 continue
             if ok:
                 n = min(n + 1.0, max_count)
