@@ -2,7 +2,8 @@
 
     .venv/bin/python bench/filter.py [--bag DIR]
 
-Times each flying-pixel filter, registration, the clean-plate mask, the whole cleaning and the
+Times each flying-pixel filter (ours with and without the sparse-return rescue), the fill of the
+holes amid sparse returns, registration, the clean-plate mask, the whole cleaning and the
 node's whole callback (message decode, cleaning, point cloud, message encode), with the bare
 cv2/numpy operations they compete with measured in the same run: a 3x3 min/max filter (the
 cheapest way to see a depth step) and cv2.projectPoints of every depth pixel. Without --bag, a
@@ -25,7 +26,7 @@ import numpy as np  # noqa: E402
 
 from volcap_core.conversions import color_to_rgb, depth_to_metres, numpy_to_image, points_to_pointcloud2  # noqa: E402
 from volcap_core.frames import frame_sets  # noqa: E402
-from volcap_filter.flying import flying_pixels, paper_flying_pixels  # noqa: E402
+from volcap_filter.flying import FlyingPixelConfig, fill_sparse_returns, flying_pixels, paper_flying_pixels  # noqa: E402
 from volcap_filter.pipeline import DepthCleaner  # noqa: E402
 from volcap_filter.registration import DepthRegistration  # noqa: E402
 from volcap_studio.session import GroundTruth, synthesize  # noqa: E402
@@ -76,12 +77,20 @@ def main() -> int:
         numpy_to_image(np.round(result.depth * 1000).astype(np.uint16), '16UC1', 0, 'c')
         points_to_pointcloud2(*c.points(result), 0, 'c')
 
+    removed = {}     # the fill's input per frame: the depth after the flying-pixel filter, its removals
+    for f in frames:
+        fly = flying_pixels(f[1].depth, f[1].depth_model.fx)
+        removed[id(f)] = (np.where(fly, np.float32(0.0), f[1].depth.astype(np.float32)), fly, f[1].depth_model.fx)
     k3 = np.ones((3, 3), np.uint8)
     rows = [
         ('bare cv2 3x3 max-min of depth (reference)', timed(lambda f: cv2.dilate(f[1].depth, k3) - cv2.erode(f[1].depth, k3), frames)),
         ('paper Eq. 5, horizontal', timed(lambda f: paper_flying_pixels(f[1].depth, 'horizontal'), frames)),
         ('paper Eq. 5, all directions', timed(lambda f: paper_flying_pixels(f[1].depth, 'all'), frames)),
-        ('volcap flying-pixel filter', timed(lambda f: flying_pixels(f[1].depth, f[1].depth_model.fx), frames)),
+        ('volcap flying-pixel filter, axis tests only (sparse_radius 0)',
+         timed(lambda f: flying_pixels(f[1].depth, f[1].depth_model.fx, FlyingPixelConfig(sparse_radius=0)), frames)),
+        ('volcap flying-pixel filter (with the sparse-return rescue)',
+         timed(lambda f: flying_pixels(f[1].depth, f[1].depth_model.fx), frames)),
+        ('fill of the holes amid sparse returns', timed(lambda f: fill_sparse_returns(*removed[id(f)]), frames)),
         ('bare cv2.projectPoints of all depth pixels (reference)',
          timed(lambda f: f[1].color_model.project(cleaners[f[0]].registration.rays.reshape(-1, 3)
                                                   * np.maximum(f[1].depth.reshape(-1, 1), 0.1)), frames)),

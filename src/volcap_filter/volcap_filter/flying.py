@@ -360,9 +360,9 @@ def fill_sparse_returns(depth_m: np.ndarray, removed: np.ndarray, focal_px: floa
     sparse = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT) - valid <= 3
     support = (valid > 0) & sparse
     r = cfg.sparse_radius
-    # only holes with enough support in reach are visited: most holes are empty regions, and
-    # visiting every one cost 11.6 ms on a 640x576 studio frame, this 2.6 ms (bench/stability.py
-    # reports the cleaning's whole cost)
+    # only holes with enough support in reach are visited: most holes are empty regions, and the
+    # window over each of them was most of the fill's time (bench/filter.py: the fill 1.2 ms a
+    # 640x576 studio frame on one core)
     reach = cv2.boxFilter(support.view(np.uint8), cv2.CV_16U, (2 * r + 1, 2 * r + 1), normalize=False,
                           borderType=cv2.BORDER_CONSTANT)
     fillable = (valid == 0) & sparse & ~np.asarray(removed, bool) & (reach >= cfg.sparse_support)
