@@ -12,9 +12,13 @@ followed through:
 
 then the whole set is fused (the graph's defaults, and ``--weight-threshold`` values to compare)
 and the share of the observable surface within 5 mm is given per band, as `volcap eval fusion`
-scores it.
+scores it, and for the lowest 15 cm together (weighted by observable samples). With
+``--eval-depth`` the same filter settings are scored by `volcap eval depth` on every capture frame
+set of the bag (flying-pixel recall and precision, valid depth kept, the fills), so a setting's
+feet come with what it costs in flying pixels.
 
     python bench/feet.py BAG [--bands 0,0.06,0.09,0.15,0.5] [--weight-threshold 0.5 1.0] [--sparse-radius 0]
+        [--eval-depth]
 """
 import argparse
 import json
@@ -25,6 +29,7 @@ import open3d as o3d
 
 from volcap_core.camera import depth_to_millimetres
 from volcap_core.poses import invert, transform_points
+from volcap_eval.depth import evaluate_depth
 from volcap_eval.fusion import dropout_rate, observable, surface_samples
 from volcap_filter.pipeline import DepthFilterConfig
 from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion, raycasting_scene
@@ -44,6 +49,7 @@ def main():
     ap.add_argument('--json', default='bench_out/feet.json')
     ap.add_argument('--sparse-radius', type=int, help='the flying-pixel filter\'s sparse_radius (0: before dark '
                     'material\'s sparse returns were kept and closed)')
+    ap.add_argument('--eval-depth', action='store_true', help='also score these settings with `volcap eval depth`')
     args = ap.parse_args()
     bands = [float(b) for b in args.bands.split(',')]
     names = [f'{bands[k]:.2f}-{bands[k + 1]:.2f} m' for k in range(len(bands) - 1)]
@@ -118,9 +124,23 @@ def main():
         rows.append({'band': name, 'faced': faced, 'returned': returned, 'accurate': accurate, 'kept_by_flying_filter':
                      kept, 'in_cleaned_output': output, 'covered_in_output': covered, 'observable_samples': observable_k,
                      'fused_within_5mm': {str(t): fused[t][k] for t in args.weight_threshold}})
+    low = [k for k in range(len(names)) if bands[k + 1] <= 0.15 + 1e-9]
+    n_low = sum(int((seen & (sample_band == k)).sum()) for k in low)
+    lowest_15cm = {str(t): sum(fused[t][k] * int((seen & (sample_band == k)).sum()) for k in low
+                               if fused[t][k] is not None) / n_low if n_low else None for t in args.weight_threshold}
+    print('the lowest 15 cm, weighted by observable samples: ' + '  '.join(
+        f'fused@{t}: {100 * v:.1f} %' for t, v in lowest_15cm.items() if v is not None))
+    report = {'bag': args.bag, 'frame': frame['index'], 'sparse_radius': cfg.flying.sparse_radius, 'bands': rows,
+              'lowest_15cm_fused_within_5mm': lowest_15cm}
+    if args.eval_depth:
+        depth = evaluate_depth(args.bag, methods=('volcap',), progress=False, configs={'volcap': cfg})
+        report['eval_depth'] = d = depth['methods']['volcap']
+        print(f"eval depth on {depth['frames']} frame sets: flying recall {d['flying_recall']}, precision "
+              f"{d['flying_precision']}, valid kept {d['valid_kept']}, mask IoU {d['mask_iou']}, depth MAE "
+              f"{d['depth_mae_mm']} mm, {d['filled_per_frame']} fills per camera frame at {d['filled_mae_mm']} mm")
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({'bag': args.bag, 'frame': frame['index'], 'bands': rows}, indent=2))
+    out.write_text(json.dumps(report, indent=2))
     print(f'wrote {out}')
 
 

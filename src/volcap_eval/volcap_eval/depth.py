@@ -78,14 +78,16 @@ class _Tally:
 
 
 def evaluate_depth(bag: str | Path, methods: tuple[str, ...] = METHODS, max_frames: int | None = None,
-                   figures: Path | None = None, progress: bool = True) -> dict:
+                   figures: Path | None = None, progress: bool = True,
+                   configs: dict[str, DepthFilterConfig] | None = None) -> dict:
     """Score each method on the bag's capture frames; with ``figures``, write PNGs of the first
-    capture frame of the first camera there."""
+    capture frame of the first camera there. ``configs`` replaces a method's default settings
+    (a bench comparing one setting's values)."""
     gt = GroundTruth(bag)
     figure_camera = gt.rig.names[0]
     tallies = {m: _Tally() for m in methods}
     figure_frames = {}
-    configs = {m: method_config(m) for m in methods}
+    configs = {m: (configs or {}).get(m) or method_config(m) for m in methods}
     captures = 0
     bar = tqdm(desc='evaluating depth cleaning', unit='frame set', disable=not progress)
     for fs, cleaned in cleaned_frame_sets(bag, configs, output_size='half', limit=max_frames):
