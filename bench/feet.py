@@ -15,10 +15,13 @@ and the share of the observable surface within 5 mm is given per band, as `volca
 scores it, and for the lowest 15 cm together (weighted by observable samples). With
 ``--eval-depth`` the same filter settings are scored by `volcap eval depth` on every capture frame
 set of the bag (flying-pixel recall and precision, valid depth kept, the fills), so a setting's
-feet come with what it costs in flying pixels.
+feet come with what it costs in flying pixels. With ``--ceiling`` the ground truth's clean depth
+of the subject is fused the same way, which shows how much of a loss is the fusion's own. Also
+printed: the cleaned output's depth error where it has the surface, and the fused model's
+distance to the observable surface, per band.
 
     python bench/feet.py BAG [--bands 0,0.06,0.09,0.15,0.5] [--weight-threshold 0.5 1.0] [--sparse-radius 0]
-        [--eval-depth]
+        [--eval-depth] [--ceiling]
 """
 import argparse
 import json
@@ -50,6 +53,8 @@ def main():
     ap.add_argument('--sparse-radius', type=int, help='the flying-pixel filter\'s sparse_radius (0: before dark '
                     'material\'s sparse returns were kept and closed)')
     ap.add_argument('--eval-depth', action='store_true', help='also score these settings with `volcap eval depth`')
+    ap.add_argument('--ceiling', action='store_true', help='also fuse the ground truth\'s clean depth of the subject '
+                    '(every faced pixel returned exactly): what the fusion makes of perfect depth')
     args = ap.parse_args()
     bands = [float(b) for b in args.bands.split(',')]
     names = [f'{bands[k]:.2f}-{bands[k + 1]:.2f} m' for k in range(len(bands) - 1)]
@@ -69,6 +74,7 @@ def main():
     # faced, returned, accurate, kept by the filter, in the output; faced with depth in the output
     # (a return or a fill of the holes between sparse returns)
     stages = np.zeros((len(names), 6), np.int64)
+    output_errors = [[] for _ in names]     # |output depth - truth| where the output has the surface
     for cam, c in cleaned['volcap'].items():
         depth_model = c.frame.depth_model
         clean = arrays[f'{cam}/depth_clean']
@@ -84,11 +90,14 @@ def main():
         px = np.round(out_model.project(local)).astype(int)
         inside = (px[:, 0] >= 0) & (px[:, 0] < out_model.width) & (px[:, 1] >= 0) & (px[:, 1] < out_model.height)
         output = np.zeros(len(v), bool)
-        output[inside] = np.abs(c.result.depth[px[inside, 1], px[inside, 0]] - local[inside, 2]) < 0.03
+        error = np.full(len(v), np.inf)
+        error[inside] = np.abs(c.result.depth[px[inside, 1], px[inside, 0]] - local[inside, 2])
+        output = error < 0.03
         for k in range(len(names)):
             sel = band == k
             stages[k] += [sel.sum(), (sel & returned).sum(), (sel & accurate).sum(), (sel & kept).sum(),
                           (sel & accurate & output).sum(), (sel & output).sum()]
+            output_errors[k].append(error[sel & output])
 
     dropped = gt.arrays(frame['index'], suffix='/dropped')
     sensors = [(rc.depth, gt.T_world_depth(rc.name), rc.color, gt.T_world_color(rc.name),
@@ -100,18 +109,37 @@ def main():
     sample_band = band_of(transform_points(T_sw, samples)[:, 2] - floor, bands)
     views = [CameraView(cam, depth_to_millimetres(c.result.depth), c.cleaner.output_model, c.frame.color,
                         c.frame.color_model, T_sw @ gt.T_world_color(cam)) for cam, c in cleaned['volcap'].items()]
-    fused = {}
-    for threshold in args.weight_threshold:
+
+    distances = {}
+
+    def covered_per_band(views, threshold, key):
         model = TsdfFusion(FusionConfig(weight_threshold=threshold)).fuse(views, on_floor=True)
         vertices = transform_points(invert(T_sw), model.vertices).astype(np.float32)
         distance = raycasting_scene(vertices, model.triangles).compute_distance(
             o3d.core.Tensor(samples.astype(np.float32))).numpy()
-        fused[threshold] = [float((distance[seen & (sample_band == k)] <= 0.005).mean())
-                            if (seen & (sample_band == k)).any() else None for k in range(len(names))]
+        distances[key] = [distance[seen & (sample_band == k)] for k in range(len(names))]
+        return [float((d <= 0.005).mean()) if d.size else None for d in distances[key]]
+
+    fused = {threshold: covered_per_band(views, threshold, threshold) for threshold in args.weight_threshold}
+    if args.ceiling:
+        # the truth's depth is on the depth sensor's grid: its pose is the depth optical frame's
+        # (the colours come out wrong, the geometry is what is scored)
+        truth_views = [CameraView(cam, depth_to_millimetres(np.where(arrays[f'{cam}/depth_subject'],
+                                                                     arrays[f'{cam}/depth_clean'], 0)),
+                                  c.frame.depth_model, c.frame.color, c.frame.color_model,
+                                  T_sw @ gt.T_world_depth(cam)) for cam, c in cleaned['volcap'].items()]
+        fused['truth'] = covered_per_band(truth_views, args.weight_threshold[0], 'truth')
+    # where the output has the surface, how close it is; and how far the fused model is from the
+    # observable surface (a shoe there but off by more than 5 mm, or missing)
+    output_error_mm = [np.round(1000 * np.percentile(np.concatenate(e), [50, 90]), 1).tolist()
+                       if sum(x.size for x in e) else None for e in output_errors]
+    fused_distance_mm = {str(t): [np.round(1000 * np.percentile(d, [50, 90]), 1).tolist() if d.size else None
+                                  for d in ds] for t, ds in distances.items()}
 
     print(f'{Path(args.bag).name}, capture frame set {frame["index"]}; heights above the subject\'s lowest point')
+    columns = list(fused)
     header = 'band          faced  returned  accurate  kept(flying)  in output  covered | observable  ' + '  '.join(
-        f'fused@{t:g}' for t in args.weight_threshold)
+        f'fused@{t:g}' if t != 'truth' else 'truth depth' for t in columns)
     print(header)
     rows = []
     for k, name in enumerate(names):
@@ -120,14 +148,21 @@ def main():
         pct = lambda a, b: f'{100 * a / b:5.1f} %' if b else '    -  '
         print(f'{name:12s} {faced:6d}  {pct(returned, faced)}  {pct(accurate, returned)}  {pct(kept, accurate)}'
               f'     {pct(output, accurate)}  {pct(covered, faced)} | {observable_k:9d}  ' + '  '.join(
-                  f'{100 * fused[t][k]:7.1f} %' if fused[t][k] is not None else '      -  ' for t in args.weight_threshold))
+                  f'{100 * fused[t][k]:7.1f} %' if fused[t][k] is not None else '      -  ' for t in columns))
         rows.append({'band': name, 'faced': faced, 'returned': returned, 'accurate': accurate, 'kept_by_flying_filter':
                      kept, 'in_cleaned_output': output, 'covered_in_output': covered, 'observable_samples': observable_k,
-                     'fused_within_5mm': {str(t): fused[t][k] for t in args.weight_threshold}})
+                     'fused_within_5mm': {str(t): fused[t][k] for t in columns},
+                     'output_error_mm_p50_p90': output_error_mm[k],
+                     'fused_distance_mm_p50_p90': {t: d[k] for t, d in fused_distance_mm.items()}})
+    print('the output\'s depth where it has the surface, |error| p50 / p90 mm: ' + ', '.join(
+        f'{name} {e[0]} / {e[1]}' for name, e in zip(names, output_error_mm) if e))
+    t0 = str(args.weight_threshold[0])
+    print(f'the observable surface\'s distance to the model fused@{t0}, p50 / p90 mm: ' + ', '.join(
+        f'{name} {d[0]} / {d[1]}' for name, d in zip(names, fused_distance_mm[t0]) if d))
     low = [k for k in range(len(names)) if bands[k + 1] <= 0.15 + 1e-9]
     n_low = sum(int((seen & (sample_band == k)).sum()) for k in low)
     lowest_15cm = {str(t): sum(fused[t][k] * int((seen & (sample_band == k)).sum()) for k in low
-                               if fused[t][k] is not None) / n_low if n_low else None for t in args.weight_threshold}
+                               if fused[t][k] is not None) / n_low if n_low else None for t in columns}
     print('the lowest 15 cm, weighted by observable samples: ' + '  '.join(
         f'fused@{t}: {100 * v:.1f} %' for t, v in lowest_15cm.items() if v is not None))
     report = {'bag': args.bag, 'frame': frame['index'], 'sparse_radius': cfg.flying.sparse_radius, 'bands': rows,
