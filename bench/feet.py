@@ -16,7 +16,9 @@ scores it, and for the lowest 15 cm together (weighted by observable samples). W
 ``--eval-depth`` the same filter settings are scored by `volcap eval depth` on every capture frame
 set of the bag (flying-pixel recall and precision, valid depth kept, the fills), so a setting's
 feet come with what it costs in flying pixels. With ``--ceiling`` the ground truth's clean depth
-of the subject is fused the same way, which shows how much of a loss is the fusion's own. Also
+of the subject is fused the same way (everywhere; only on the pixels the cleaner kept or filled;
+the cleaner's own depth there), which shows how much of a loss is the fusion's own, the holes'
+and the depth values'. Also
 printed: the cleaned output's depth error where it has the surface, and the fused model's
 distance to the observable surface, per band.
 
@@ -122,13 +124,24 @@ def main():
 
     fused = {threshold: covered_per_band(views, threshold, threshold) for threshold in args.weight_threshold}
     if args.ceiling:
-        # the truth's depth is on the depth sensor's grid: its pose is the depth optical frame's
-        # (the colours come out wrong, the geometry is what is scored)
-        truth_views = [CameraView(cam, depth_to_millimetres(np.where(arrays[f'{cam}/depth_subject'],
-                                                                     arrays[f'{cam}/depth_clean'], 0)),
-                                  c.frame.depth_model, c.frame.color, c.frame.color_model,
-                                  T_sw @ gt.T_world_depth(cam)) for cam, c in cleaned['volcap'].items()]
-        fused['truth'] = covered_per_band(truth_views, args.weight_threshold[0], 'truth')
+        # Depth on the depth sensor's grid, posed in its optical frame (the colours come out
+        # wrong; the geometry is what is scored): the truth everywhere on the subject; the truth
+        # only on the pixels the cleaner kept or filled (its sieve); the cleaner's own values there.
+        def depth_grid_views(depth_of):
+            return [CameraView(cam, depth_to_millimetres(np.where(arrays[f'{cam}/depth_subject'], depth_of(c, cam), 0)),
+                               c.frame.depth_model, c.frame.color, c.frame.color_model, T_sw @ gt.T_world_depth(cam))
+                    for cam, c in cleaned['volcap'].items()]
+
+        def filled(c):
+            return c.result.filled if c.result.filled is not None else np.zeros_like(c.frame.depth)
+
+        def sieve(c):
+            return ((c.frame.depth > 0) & ~c.result.flying) | (filled(c) > 0)
+        variants = {'truth': lambda c, cam: arrays[f'{cam}/depth_clean'],
+                    'truth on the sieve': lambda c, cam: np.where(sieve(c), arrays[f'{cam}/depth_clean'], 0),
+                    'own on the sieve': lambda c, cam: np.where(sieve(c), c.frame.depth + filled(c), 0)}
+        for key, depth_of in variants.items():
+            fused[key] = covered_per_band(depth_grid_views(depth_of), args.weight_threshold[0], key)
     # where the output has the surface, how close it is; and how far the fused model is from the
     # observable surface (a shoe there but off by more than 5 mm, or missing)
     output_error_mm = [np.round(1000 * np.percentile(np.concatenate(e), [50, 90]), 1).tolist()
@@ -139,7 +152,7 @@ def main():
     print(f'{Path(args.bag).name}, capture frame set {frame["index"]}; heights above the subject\'s lowest point')
     columns = list(fused)
     header = 'band          faced  returned  accurate  kept(flying)  in output  covered | observable  ' + '  '.join(
-        f'fused@{t:g}' if t != 'truth' else 'truth depth' for t in columns)
+        f'fused@{t:g}' if not isinstance(t, str) else t for t in columns)
     print(header)
     rows = []
     for k, name in enumerate(names):
