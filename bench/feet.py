@@ -57,6 +57,9 @@ def main():
     ap.add_argument('--eval-depth', action='store_true', help='also score these settings with `volcap eval depth`')
     ap.add_argument('--ceiling', action='store_true', help='also fuse the ground truth\'s clean depth of the subject '
                     '(every faced pixel returned exactly): what the fusion makes of perfect depth')
+    ap.add_argument('--complete-radius', type=int, help='the depth filter\'s complete_radius (0: before holes inside '
+                    'the foreground mask were completed)')
+    ap.add_argument('--complete-extend', type=int, help='the depth filter\'s complete_extend')
     args = ap.parse_args()
     bands = [float(b) for b in args.bands.split(',')]
     names = [f'{bands[k]:.2f}-{bands[k + 1]:.2f} m' for k in range(len(bands) - 1)]
@@ -66,6 +69,10 @@ def main():
     cfg = DepthFilterConfig()
     if args.sparse_radius is not None:
         cfg.flying.sparse_radius = args.sparse_radius
+    if args.complete_radius is not None:
+        cfg.complete_radius = args.complete_radius
+    if args.complete_extend is not None:
+        cfg.complete_extend = args.complete_extend
     fs, cleaned = next(cleaned_frame_sets(args.bag, {'volcap': cfg}, limit=1))
     frame = next(f for f in captures if abs(f['stamp_ns'] - fs.stamp_ns) < 20_000_000)
     arrays = gt.arrays(frame['index'])

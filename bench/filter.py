@@ -3,7 +3,8 @@
     .venv/bin/python bench/filter.py [--bag DIR]
 
 Times each flying-pixel filter (ours with and without the sparse-return rescue), the fill of the
-holes amid sparse returns, registration, the clean-plate mask, the whole cleaning and the
+holes amid sparse returns, registration, the clean-plate mask, the whole cleaning (with and
+without the completion of holes inside the mask) and the
 node's whole callback (message decode, cleaning, point cloud, message encode), with the bare
 cv2/numpy operations they compete with measured in the same run: a 3x3 min/max filter (the
 cheapest way to see a depth step) and cv2.projectPoints of every depth pixel. Without --bag, a
@@ -27,7 +28,7 @@ import numpy as np  # noqa: E402
 from volcap_core.conversions import color_to_rgb, depth_to_metres, numpy_to_image, points_to_pointcloud2  # noqa: E402
 from volcap_core.frames import frame_sets  # noqa: E402
 from volcap_filter.flying import FlyingPixelConfig, fill_sparse_returns, flying_pixels, paper_flying_pixels  # noqa: E402
-from volcap_filter.pipeline import DepthCleaner  # noqa: E402
+from volcap_filter.pipeline import DepthCleaner, DepthFilterConfig  # noqa: E402
 from volcap_filter.registration import DepthRegistration  # noqa: E402
 from volcap_studio.session import GroundTruth, synthesize  # noqa: E402
 from volcap_studio.studio import SynthConfig  # noqa: E402
@@ -57,14 +58,16 @@ def main() -> int:
         bag = Path(tmp.name) / 'bag'
         synthesize(bag, SynthConfig(cameras=8, frames=2, board_poses=0, background_frames=2, seed=11), progress=False)
     rig = GroundTruth(bag).rig
-    cleaners, frames = {}, []
+    cleaners, uncompleted, frames = {}, {}, []
     for fs in frame_sets(bag, phases=('clean_plate', 'capture')):
         for name, f in fs.cameras.items():
             if name not in cleaners:
                 reg = DepthRegistration(f.depth_model, f.color_model, rig.camera(name).T_color_depth)
                 cleaners[name] = DepthCleaner(reg)
+                uncompleted[name] = DepthCleaner(reg, DepthFilterConfig(complete_radius=0))
             if fs.phase == 'clean_plate':
                 cleaners[name].learn_background(f.color, f.depth)
+                uncompleted[name].learn_background(f.color, f.depth)
             else:
                 frames.append((name, f))
     msgs = [(name, numpy_to_image(f.color, 'rgb8', 0, 'c'), numpy_to_image(np.round(f.depth * 1000).astype(np.uint16),
@@ -96,6 +99,8 @@ def main() -> int:
                                                   * np.maximum(f[1].depth.reshape(-1, 1), 0.1)), frames)),
         ('registration (project + z-buffered raster)', timed(lambda f: cleaners[f[0]].registration.register(f[1].depth), frames)),
         ('whole cleaning (DepthCleaner.process)', timed(lambda f: cleaners[f[0]].process(f[1].color, f[1].depth), frames)),
+        ('whole cleaning without the completion inside the mask (complete_radius 0)',
+         timed(lambda f: uncompleted[f[0]].process(f[1].color, f[1].depth), frames)),
         ('node callback (decode, clean, cloud, encode)', timed(node_callback, msgs)),
     ]
     stages = {}

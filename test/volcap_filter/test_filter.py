@@ -4,8 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
+from volcap_core.errors import BadInput
 from volcap_core.rig import rig_camera_from_k4a
-from volcap_filter.flying import FlyingPixelConfig, fill_sparse_returns, flying_pixels, paper_flying_pixels
+from volcap_filter.flying import FlyingPixelConfig, complete_inside, fill_sparse_returns, flying_pixels, paper_flying_pixels
 from volcap_filter.mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
 from volcap_filter.pipeline import DepthCleaner, DepthFilterConfig, sanitise_depth
 from volcap_filter.registration import DepthRegistration
@@ -153,6 +154,36 @@ def test_a_dark_shoe_on_the_floor_is_kept_and_closed_and_real_flying_pixels_stil
     assert np.abs(filled - truth)[filled > 0].max() < 0.015
     assert not filled[removed].any()
     assert not fill_sparse_returns(gated, removed, 500.0, FlyingPixelConfig(sparse_radius=0)).any()
+
+
+def test_the_silhouette_completes_the_shoe_down_to_its_sole():
+    """Issue 30's feet: the returns kept and the holes closed between them leave the strip along
+    the shoe's sole empty (no return there has its surface on every side: the floor is below).
+    Completing inside the silhouette fills the holes between the depth first, then extends the
+    shoe's plane to the silhouette's edge; nothing outside the silhouette is touched, nothing is
+    filled off the shoe's surface, and without the extending passes the sole stays empty."""
+    z, truth, shoe, mixed = _shoe_scene(np.random.default_rng(5))
+    removed = flying_pixels(z, 500.0)
+    depth = np.where(removed, np.float32(0.0), z)
+    depth += fill_sparse_returns(depth, removed, 500.0)
+    sole = shoe & (np.mgrid[:200, :200][0] >= 134)
+    assert (depth[sole] > 0).mean() < 0.5                        # the failure: the sole's strip is a hole
+    between = depth.copy()
+    complete_inside(between, shoe, 500.0, 4, 0)
+    completed = depth.copy()
+    n = complete_inside(completed, shoe, 500.0, 4, 2)
+    assert n == np.count_nonzero(completed != depth)
+    assert (completed[shoe] > 0).mean() > 0.98, 'the shoe not completed'
+    assert (completed[sole] > 0).mean() > 0.95, 'the sole not reached'
+    assert (completed[sole] > 0).mean() > (between[sole] > 0).mean() + 0.3
+    assert np.array_equal(completed[~shoe], depth[~shoe]), 'depth outside the silhouette changed'
+    new = completed != depth
+    assert np.abs(completed - truth)[new].max() < 0.015, 'a completion off the shoe\'s surface'
+    assert np.abs(completed - truth)[new].mean() < 0.004
+    assert complete_inside(depth.copy(), np.zeros_like(shoe), 500.0, 4, 2) == 0
+    assert complete_inside(depth.copy(), shoe, 500.0, 0, 2) == 0
+    with pytest.raises(BadInput):
+        complete_inside(depth.astype(np.float64), shoe, 500.0, 4, 2)
 
 
 def _room(rng, shape=(120, 160)):

@@ -13,7 +13,7 @@ import numpy as np
 from volcap_core.errors import BadInput
 from volcap_core.settings import setting, validate
 
-from .flying import FlyingPixelConfig, fill_lattice_gaps, fill_sparse_returns, flying_pixels, paper_flying_pixels
+from .flying import FlyingPixelConfig, complete_inside, fill_lattice_gaps, fill_sparse_returns, flying_pixels, paper_flying_pixels
 from .mask import BackgroundModel, MaskConfig, chroma_key_mask, foreground_mask
 from .registration import DepthRegistration, Registered
 from .temporal import TemporalFilter
@@ -35,6 +35,10 @@ class DepthFilterConfig:
                                       1.0, 255.0)
     boundary_px: int = setting(2, 'mask boundary band (output px) where depth behind the inside is dropped', 0, 20)
     boundary_tolerance: float = setting(0.03, 'how far behind the nearby inside band depth may lie (m)', 0.0, 1.0)
+    complete_radius: int = setting(4, 'window radius (output px) over which holes inside the foreground mask get the '
+                                   'plane through the depth around them (0 = off)', 0, 16)
+    complete_extend: int = setting(2, 'passes after the first that extend the surface from one side towards the mask '
+                                   'edge, complete_radius px each (0 = only between depth on three sides)', 0, 8)
     temporal_alpha: float = setting(0.1, 'where the scene holds still, depth and colour are averaged over the frames since '
                                     'it last moved, up to 1/alpha of them (0 = off)', 0.0, 1.0)
     temporal_window: int = setting(15, 'window (px) over which the mean depth change tells motion from noise', 3, 63)
@@ -134,6 +138,9 @@ class DepthCleaner:
                             interpolation=cv2.INTER_AREA) > 127
             keep &= self._boundary_keep(fg, reg.depth)
         clean = np.where(keep, reg.depth, np.float32(0.0))
+        if mask is not None and self.cfg.complete_radius > 0:
+            # a new array (np.where's): completed in place
+            complete_inside(clean, fg, out.fx, self.cfg.complete_radius, self.cfg.complete_extend, self.cfg.flying)
         t['mask'] = _ms(t0)
         if self.temporal is not None:
             t0 = time.perf_counter()
