@@ -282,8 +282,8 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, min_q
     """``out`` (unpadded, zeros) gets the depth of the ``fillable`` holes from the plane through
     the ``support`` returns around them (``zp`` and ``support`` padded by ``r``), when they lie
     in ``min_quadrants`` of the four quadrants; see ``fill_sparse_returns``. With
-    ``extrapolate`` the plane may pass beyond the returns' depth range by that range plus one
-    sigma (``complete_inside``'s extending passes); else only within it."""
+    ``extrapolate`` the plane may pass beyond the returns' depth range by one sigma
+    (``complete_inside``'s extending passes); else only within it."""
     h, w = out.shape
     n = (2 * r + 1) * (2 * r + 1)
     xs, ys, zs = np.empty(n), np.empty(n), np.empty(n)
@@ -333,7 +333,7 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, min_q
             worst = 0.0
             for i in range(k):
                 worst = max(worst, abs(zs[i] - c0 - c1 * xs[i] - c2 * ys[i]))
-            slack = (hi - lo + sigma) if extrapolate else 0.0
+            slack = sigma if extrapolate else 0.0
             if worst <= 3.0 * sigma and lo - slack <= c0 <= hi + slack:
                 out[v, u] = c0
 
@@ -388,9 +388,12 @@ def complete_inside(depth_m: np.ndarray, region: np.ndarray, focal_px: float, ra
     from the plane through the depth inside ``region`` around them, the same plane test as
     ``fill_sparse_returns`` over a ``radius`` window: first between depth on three sides
     (interpolated), then ``extend`` passes from depth on any side towards the silhouette's edge,
-    each reaching ``radius`` px further (the plane may pass beyond the depth range around by
-    that range plus one sigma). Nothing outside ``region`` is touched, and only its bounding box
-    is visited."""
+    each reaching ``radius`` px further (the plane may pass beyond the depth range around it by
+    one sigma: a surface turning away towards a rim is not extended). Allowing that range plus
+    a sigma gave the same feet (91.2 against 91.0 %) and a turning subject's accuracy 1.38
+    against 1.36 mm (seed 3); extending only 2 px or more inside the silhouette, 1.31 mm but
+    feet 86.3 %, since a sole's strip ends at the silhouette's edge. Nothing outside ``region``
+    is touched, and only its bounding box is visited."""
     cfg = cfg or FlyingPixelConfig()
     if depth_m.dtype != np.float32 or depth_m.shape != region.shape:
         raise BadInput(f'complete_inside needs float32 depth and a region of its shape, got {depth_m.dtype} '

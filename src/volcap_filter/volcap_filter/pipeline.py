@@ -1,7 +1,7 @@
 """One camera's depth cleaning, stage by stage: flying pixels and range gate on the raw grid,
 registration into the colour camera, foreground mask with a depth-aware boundary band,
-temporal averaging where the scene holds still (``temporal``), and the coloured point cloud
-(optionally outlier-filtered)."""
+completion of the holes inside the mask (``flying.complete_inside``), temporal averaging where
+the scene holds still (``temporal``), and the coloured point cloud (optionally outlier-filtered)."""
 from __future__ import annotations
 
 import time
