@@ -11,7 +11,8 @@ temporal state) and fused with the ground-truth poses at the graph's voxel size;
 - the fusion against the truth (``volcap_eval.fusion.score_frame``): accuracy and completeness,
   the frames after the filter has settled (from the third).
 
-    python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--motions none turn] [--json bench_out/stability.json]
+    python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--motions none turn] [--complete-radius 4]
+                              [--json bench_out/stability.json]
 """
 import argparse
 import json
@@ -94,13 +95,16 @@ def main():
     ap.add_argument('--alphas', type=float, nargs='+', default=[0.0, 0.1],
                     help='temporal_alpha values of the depth filter (0 = off)')
     ap.add_argument('--motions', nargs='+', default=['none', 'turn'], choices=['none', 'turn'])
+    ap.add_argument('--complete-radius', type=int, default=DepthFilterConfig().complete_radius,
+                    help='the depth filter\'s complete_radius (0: holes inside the mask not completed)')
     ap.add_argument('--voxel', type=float, default=VOXEL_SIZE)
     ap.add_argument('--work', default='bench_out/stability')
     ap.add_argument('--json', default='bench_out/stability.json')
     args = ap.parse_args()
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    configs = {f'alpha {a:g}': DepthFilterConfig(temporal_alpha=a) for a in args.alphas}
+    configs = {f'alpha {a:g}': DepthFilterConfig(temporal_alpha=a, complete_radius=args.complete_radius)
+               for a in args.alphas}
     results = []
     for seed in args.seeds:
         for motion in args.motions:
