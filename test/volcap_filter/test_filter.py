@@ -264,16 +264,25 @@ def test_cleaner_on_a_studio_frame_gives_points_and_temporal_state(studio_bag):
     for fs in frame_sets(studio_bag, phases=('clean_plate', 'capture')):
         f = fs.cameras['cam2']
         if cleaner is None:
-            cleaner = DepthCleaner(DepthRegistration(f.depth_model, f.color_model, rig.camera('cam2').T_color_depth),
-                                   DepthFilterConfig(temporal_alpha=0.5, sor_neighbors=16))
+            reg = DepthRegistration(f.depth_model, f.color_model, rig.camera('cam2').T_color_depth)
+            cleaner = DepthCleaner(reg, DepthFilterConfig(temporal_alpha=0.5, sor_neighbors=16))
+            # without temporal state, with and without the completion inside the mask
+            completed = DepthCleaner(reg, DepthFilterConfig(temporal_alpha=0))
+            uncompleted = DepthCleaner(reg, DepthFilterConfig(temporal_alpha=0, complete_radius=0))
         if fs.phase == 'clean_plate':
-            cleaner.learn_background(f.color, f.depth)
+            for c in (cleaner, completed, uncompleted):
+                c.learn_background(f.color, f.depth)
             continue
         result = cleaner.process(f.color, f.depth)
     xyz, rgb = cleaner.points(result)
     assert result.depth.shape == (360, 640) and result.mask.shape == (720, 1280)
     assert len(xyz) > 2000 and rgb.dtype == np.uint8 and xyz.shape == rgb.shape
     assert np.all((xyz[:, 2] > 0.1) & (xyz[:, 2] < 2.5))
+    # the completion gives depth only to holes inside the mask, and leaves every other pixel as it was
+    with_, without = completed.process(f.color, f.depth), uncompleted.process(f.color, f.depth)
+    fg = cv2.resize(with_.mask.view(np.uint8) * np.uint8(255), (640, 360), interpolation=cv2.INTER_AREA) > 127
+    changed = with_.depth != without.depth
+    assert changed.any() and np.all(fg[changed]) and not np.any(without.depth[changed])
 
 
 
