@@ -138,12 +138,14 @@ class DepthCleaner:
                             interpolation=cv2.INTER_AREA) > 127
             keep &= self._boundary_keep(fg, reg.depth)
         clean = np.where(keep, reg.depth, np.float32(0.0))
+        t['mask'] = _ms(t0)
         # Depth a driver registered keeps its lattice of empty rows and columns (as in _fill): the
         # completion would fill the lattice inside the mask, unmeasured, so native depth only.
         if mask is not None and self.cfg.complete_radius > 0 and not self.registration.registered:
+            t0 = time.perf_counter()
             # a new array (np.where's): completed in place
             complete_inside(clean, fg, out.fx, self.cfg.complete_radius, self.cfg.complete_extend, self.cfg.flying)
-        t['mask'] = _ms(t0)
+            t['complete'] = _ms(t0)
         if self.temporal is not None:
             t0 = time.perf_counter()
             clean, color, _ = self.temporal.update(clean, color)
