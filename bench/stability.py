@@ -12,6 +12,7 @@ temporal state) and fused with the ground-truth poses at the graph's voxel size;
   the frames after the filter has settled (from the third).
 
     python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--motions none turn] [--complete-radius 4]
+                              [--complete-extend 2]
                               [--json bench_out/stability.json]
 """
 import argparse
@@ -97,13 +98,16 @@ def main():
     ap.add_argument('--motions', nargs='+', default=['none', 'turn'], choices=['none', 'turn'])
     ap.add_argument('--complete-radius', type=int, default=DepthFilterConfig().complete_radius,
                     help='the depth filter\'s complete_radius (0: holes inside the mask not completed)')
+    ap.add_argument('--complete-extend', type=int, default=DepthFilterConfig().complete_extend,
+                    help='the depth filter\'s complete_extend (0: completion only between depth on three sides)')
     ap.add_argument('--voxel', type=float, default=VOXEL_SIZE)
     ap.add_argument('--work', default='bench_out/stability')
     ap.add_argument('--json', default='bench_out/stability.json')
     args = ap.parse_args()
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    configs = {f'alpha {a:g}': DepthFilterConfig(temporal_alpha=a, complete_radius=args.complete_radius)
+    configs = {f'alpha {a:g}': DepthFilterConfig(temporal_alpha=a, complete_radius=args.complete_radius,
+                                                     complete_extend=args.complete_extend)
                for a in args.alphas}
     results = []
     for seed in args.seeds:
