@@ -12,7 +12,7 @@ temporal state) and fused with the ground-truth poses at the graph's voxel size;
   the frames after the filter has settled (from the third).
 
     python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--motions none turn] [--complete-radius 4]
-                              [--complete-extend 2]
+                              [--complete-extend 2] [--carry-decays 0 0.5] [--carry-reset-mm 1]
                               [--json bench_out/stability.json]
 """
 import argparse
@@ -43,22 +43,25 @@ def studio(out: Path, seed: int, frames: int, motion: str) -> Path:
     return bag
 
 
-def fuse_sequence(bag: Path, configs: dict[str, DepthFilterConfig], voxel: float) -> tuple[dict, list[int], dict]:
-    """{config: [FusedModel per capture set]} in the world frame, the sets' stamps, and the mean
-    cleaning ms per camera frame."""
+def fuse_sequence(bag: Path, configs: dict[str, DepthFilterConfig], fusions: dict[str, FusionConfig]
+                  ) -> tuple[dict, list[int], dict]:
+    """{(filter config, fusion config): [FusedModel per capture set]} in the world frame, the
+    sets' stamps, and the mean cleaning ms per camera frame of each filter config."""
     gt = GroundTruth(bag)
     T_sw = np.asarray(gt.doc['T_studio_world'], float)     # fused in the studio frame, on the floor, as the graph does
-    fusion = TsdfFusion(FusionConfig(voxel_size=voxel))
-    models, stamps, ms = {c: [] for c in configs}, [], {c: [] for c in configs}
+    # one fusion per pair: each carries its own last frame set
+    fusion = {(c, f): TsdfFusion(cfg) for c in configs for f, cfg in fusions.items()}
+    models, stamps, ms = {k: [] for k in fusion}, [], {c: [] for c in configs}
     for fs, cleaned in cleaned_frame_sets(bag, configs):
         stamps.append(fs.stamp_ns)
         for name, cams in cleaned.items():
             ms[name] += [sum(c.result.timings_ms.values()) for c in cams.values()]
             views = [CameraView(cam, depth_to_millimetres(c.result.depth), c.cleaner.output_model, c.color,
                                 c.frame.color_model, T_sw @ gt.T_world_color(cam)) for cam, c in cams.items()]
-            model = fusion.fuse(views, on_floor=True)
-            model.vertices = transform_points(invert(T_sw), model.vertices).astype(np.float32)
-            models[name].append(model)
+            for f in fusions:
+                model = fusion[name, f].fuse(views, on_floor=True)
+                model.vertices = transform_points(invert(T_sw), model.vertices).astype(np.float32)
+                models[name, f].append(model)
     return models, stamps, {c: float(np.mean(v)) for c, v in ms.items()}
 
 
@@ -101,6 +104,10 @@ def main():
     ap.add_argument('--complete-extend', type=int, default=DepthFilterConfig().complete_extend,
                     help='the depth filter\'s complete_extend (0: completion only between depth on three sides)')
     ap.add_argument('--voxel', type=float, default=VOXEL_SIZE)
+    ap.add_argument('--carry-decays', type=float, nargs='+', default=[FusionConfig().carry_decay],
+                    help='the fusion\'s carry_decay values (0: each frame set fused alone)')
+    ap.add_argument('--carry-reset-mm', type=float, default=FusionConfig().carry_reset_mm,
+                    help='the fusion\'s carry_reset_mm')
     ap.add_argument('--work', default='bench_out/stability')
     ap.add_argument('--json', default='bench_out/stability.json')
     args = ap.parse_args()
@@ -109,30 +116,37 @@ def main():
     configs = {f'alpha {a:g}': DepthFilterConfig(temporal_alpha=a, complete_radius=args.complete_radius,
                                                      complete_extend=args.complete_extend)
                for a in args.alphas}
+    fusions = {f'carry {d:g}': FusionConfig(voxel_size=args.voxel, carry_decay=d, carry_reset_mm=args.carry_reset_mm)
+               for d in args.carry_decays}
     results = []
     for seed in args.seeds:
         for motion in args.motions:
             t0 = time.perf_counter()
             bag = studio(work, seed, args.frames, motion)
             gt = GroundTruth(bag)
-            models, stamps, ms = fuse_sequence(bag, configs, args.voxel)
+            models, stamps, ms = fuse_sequence(bag, configs, fusions)
             poses = {s: matrix_from_list(truth_frame(gt, s)['T_world_subject']) for s in stamps}
-            for name, seq in models.items():
+            for (filter_name, fusion_name), seq in models.items():
+                name = f'{filter_name}, {fusion_name}'
                 # the first two frames are the filter settling; pairs and truth from the third
                 settled, settled_stamps = seq[2:], stamps[2:]
                 motion_of = (lambda k, s=settled_stamps: poses[s[k + 1]] @ invert(poses[s[k]]))
                 stability = sequence_stability(settled, motion=motion_of)
-                scores = truth_scores(gt, models[name], stamps, 2)
-                row = {'seed': seed, 'motion': motion, 'config': name, 'clean_ms_per_camera_frame': ms[name],
+                scores = truth_scores(gt, seq, stamps, 2)
+                carry_ms = [m.timings_ms.get('carry', 0.0) for m in seq]
+                fuse_ms = [sum(m.timings_ms.values()) for m in seq]
+                row = {'seed': seed, 'motion': motion, 'config': name, 'clean_ms_per_camera_frame': ms[filter_name],
+                       'fuse_ms': float(np.median(fuse_ms)), 'carry_ms': float(np.median(carry_ms)),
                        **{k: stability[k] for k in ('frame_pairs', 'jitter_rms_mm', 'flicker_de', 'appear_vanish')},
                        # per pair: how the change falls as the average fills (the steady state is the tail)
                        'jitter_per_pair_mm': [p['jitter_rms_mm'] for p in stability['pairs']],
                        'flicker_per_pair': [p['flicker_de'] for p in stability['pairs']],
                        **scores}
                 results.append(row)
-                print(f'seed {seed} motion {motion:4s} {name:10s} {format_stability(stability)}; accuracy '
+                print(f'seed {seed} motion {motion:4s} {name} {format_stability(stability)}; accuracy '
                       f'{scores["accuracy_mm"]:.2f} mm, completeness {100 * scores["completeness"]:.1f} %, feet '
-                      f'{100 * scores["completeness_feet"]:.1f} %; cleaning {ms[name]:.0f} ms/camera frame', flush=True)
+                      f'{100 * scores["completeness_feet"]:.1f} %; cleaning {ms[filter_name]:.0f} ms/camera frame; fusion '
+                      f'{row["fuse_ms"]:.0f} ms/set, of it carry {row["carry_ms"]:.0f} ms', flush=True)
             print(f'  ({time.perf_counter() - t0:.0f} s)', flush=True)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)

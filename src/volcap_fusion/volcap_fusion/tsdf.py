@@ -70,6 +70,9 @@ class FusedModel:
     # depth_max, which the model cannot hold
     depth_left_out: float | None = None
     capture_volume: str = ''       # where the box came from: fixed, floor, converging cameras, data
+    # voxels both steps saw, of them carried and in blocks that moved; restarted: the last step
+    # was not used (the first, a new take, a camera or the box moved); empty: the carry is off
+    carried: dict = field(default_factory=dict)
 
     def raycasting_scene(self) -> o3d.t.geometry.RaycastingScene:
         return raycasting_scene(self.vertices, self.triangles)
@@ -244,16 +247,20 @@ def _shifted(K: np.ndarray, x0: int, y0: int) -> np.ndarray:
 
 
 class TsdfFusion:
-    """Fuses frame sets. Each time step starts from an empty volume (moving subjects: nothing
-    carries over), but the volume's memory and the per-camera maps are kept between them:
-    allocating a 40 000-block grid costs more than integrating eight cameras into it."""
+    """Fuses frame sets. Each time step is integrated into an empty volume; with ``carry_decay``
+    the voxels that held still since the last step are then averaged with it (``carry``), so
+    that volume is kept until the next step. The volumes' memory and the per-camera maps are
+    kept between steps: allocating a 40 000-block grid costs more than integrating eight
+    cameras into it."""
 
     def __init__(self, cfg: FusionConfig | None = None):
         self.cfg = cfg or FusionConfig()
         self.cfg.validate()
         self.device = o3c.Device(open3d_device(self.cfg.device))
         self._rectifiers: dict[tuple[CameraModel, CameraModel], Rectifier] = {}
-        self._volume: o3d.t.geometry.VoxelBlockGrid | None = None
+        self._spare: o3d.t.geometry.VoxelBlockGrid | None = None      # the next step's memory
+        self._previous: o3d.t.geometry.VoxelBlockGrid | None = None   # the last step's volume (carry)
+        self._previous_key: tuple | None = None
 
     def rectifier(self, view: CameraView) -> Rectifier:
         key = (view.depth_model, view.color_model)
@@ -262,11 +269,11 @@ class TsdfFusion:
         return self._rectifiers[key]
 
     def empty_volume(self) -> o3d.t.geometry.VoxelBlockGrid:
-        """The kept volume with every block removed."""
-        if self._volume is None:
-            self._volume = self.new_volume()
-            return self._volume
-        hashmap = self._volume.hashmap()
+        """The kept spare volume with every block removed."""
+        if self._spare is None:
+            self._spare = self.new_volume()
+            return self._spare
+        hashmap = self._spare.hashmap()
         active = hashmap.active_buf_indices().to(o3c.int64)
         if active.shape[0]:
             # Re-activated blocks keep their old values: a zero weight makes the next
@@ -276,7 +283,29 @@ class TsdfFusion:
             else:
                 hashmap.value_tensor(1)[active] = 0.0
             hashmap.erase(hashmap.key_tensor()[active])
-        return self._volume
+        return self._spare
+
+    def forget(self) -> None:
+        """The next step carries nothing over (a new take, a scene cut)."""
+        self._previous_key = None
+
+    def _carry(self, volume: o3d.t.geometry.VoxelBlockGrid, views: list[CameraView],
+               box: tuple[np.ndarray, np.ndarray]) -> dict:
+        """Averages the last step into ``volume`` where it held still (``carry.carry_over``) when
+        both share the capture box and every camera in both kept its pose; then ``volume``
+        becomes the last step and the last one's memory the spare."""
+        from .carry import carry_over  # torch: loaded only when the carry is on
+        key = (np.concatenate(box).tobytes(), {v.name: np.asarray(v.T_world_camera, np.float64).tobytes()
+                                               for v in views})
+        counts = {'seen_twice': 0, 'carried': 0, 'moved': 0, 'restarted': True}
+        last = self._previous_key
+        if (self._previous is not None and last is not None and last[0] == key[0]
+                and all(last[1].get(name, pose) == pose for name, pose in key[1].items())):
+            counts['restarted'] = False
+            counts |= carry_over(volume, self._previous, self.cfg.carry_decay, self.cfg.carry_reset_mm,
+                                self.cfg.trunc_voxels * self.cfg.voxel_size * 1e3)
+        self._spare, self._previous, self._previous_key = self._previous, volume, key
+        return counts
 
     def new_volume(self) -> o3d.t.geometry.VoxelBlockGrid:
         cfg = self.cfg
@@ -357,8 +386,9 @@ class TsdfFusion:
         return crop_to_box(vertices, colors_to_uint8(colors), triangles, *box)
 
     def fuse(self, views: list[CameraView], on_floor: bool = False) -> FusedModel:
-        """One time step: a fresh volume, every view integrated, the mesh extracted (in the frame
-        of the views' poses; ``on_floor``: see ``capture_box``)."""
+        """One time step: an empty volume, every view integrated, the still part of the last
+        step carried over (``carry_decay``), the mesh extracted (in the frame of the views'
+        poses; ``on_floor``: see ``capture_box``)."""
         if not views:
             raise BadInput('no camera to fuse')
         t0 = time.perf_counter()
@@ -367,15 +397,19 @@ class TsdfFusion:
         volume = self.empty_volume()
         seen = sum(self.integrate(volume, view, box) > 0 for view in views)
         t1 = time.perf_counter()
+        timings = {'integrate': (t1 - t0) * 1e3}
+        carried = self._carry(volume, views, box) if self.cfg.carry_decay > 0 else {}
+        t2 = time.perf_counter()
+        if self.cfg.carry_decay > 0:
+            timings['carry'] = (t2 - t1) * 1e3
         if seen == 0:
             # An empty stage is a state, not a failure: an empty model the caller reports.
             empty = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.int32)
-            return FusedModel(*empty, [v.name for v in views], {'integrate': (t1 - t0) * 1e3, 'extract': 0.0},
-                              left_out, source)
+            return FusedModel(*empty, [v.name for v in views], {**timings, 'extract': 0.0}, left_out, source,
+                              carried)
         vertices, colors, triangles = self.extract(volume, box, seen)
-        t2 = time.perf_counter()
-        return FusedModel(vertices, colors, triangles, [v.name for v in views],
-                          {'integrate': (t1 - t0) * 1e3, 'extract': (t2 - t1) * 1e3}, left_out, source)
+        timings['extract'] = (time.perf_counter() - t2) * 1e3
+        return FusedModel(vertices, colors, triangles, [v.name for v in views], timings, left_out, source, carried)
 
 
 DEPTH_SAMPLE_STRIDE = 8     # every 8th pixel each way: the box and the left-out share, at ~0.1 ms a camera
