@@ -12,7 +12,7 @@ temporal state) and fused with the ground-truth poses at the graph's voxel size;
   the frames after the filter has settled (from the third).
 
     python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--motions none turn] [--complete-radius 4]
-                              [--complete-extend 2] [--carry-decays 0 0.5] [--carry-reset-mm 1]
+                              [--complete-extend 2] [--carry-decays 0 0.7] [--carry-reset-mm 1.5]
                               [--json bench_out/stability.json]
 """
 import argparse

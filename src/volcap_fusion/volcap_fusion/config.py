@@ -51,7 +51,8 @@ class FusionConfig:
                                  'exponential average over frame sets where the scene holds still; 0: each set '
                                  'fused alone)', 0.0, 0.95, read_only=True)
     carry_reset_mm: float = setting(1.5, 'scale (mm) of a block of voxels\' surface motion since the last frame set: '
-                                    'moved this far, it keeps e^-0.5 of its history; three times as far, none',
+                                    'moved this far beyond twice its recent wobble, it keeps e^-0.5 of its history; '
+                                    'three times as far, none',
                                     0.01, 100.0, read_only=True)
     device: str = setting('auto', 'CPU:0, CUDA:0 or auto (CUDA when Open3D has it)', read_only=True)
 

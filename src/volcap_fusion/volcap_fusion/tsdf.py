@@ -261,6 +261,7 @@ class TsdfFusion:
         self._spare: o3d.t.geometry.VoxelBlockGrid | None = None      # the next step's memory
         self._previous: o3d.t.geometry.VoxelBlockGrid | None = None   # the last step's volume (carry)
         self._previous_key: tuple | None = None
+        self._previous_wobble = None                                   # carry.BlockWobble of the last step
 
     def rectifier(self, view: CameraView) -> Rectifier:
         key = (view.depth_model, view.color_model)
@@ -298,13 +299,15 @@ class TsdfFusion:
         key = (np.concatenate(box).tobytes(), {v.name: np.asarray(v.T_world_camera, np.float64).tobytes()
                                                for v in views})
         counts = {'seen_twice': 0, 'carried': 0, 'moved': 0, 'restarted': True}
-        last = self._previous_key
+        last, wobble = self._previous_key, None
         if (self._previous is not None and last is not None and last[0] == key[0]
                 and all(last[1].get(name, pose) == pose for name, pose in key[1].items())):
             counts['restarted'] = False
-            counts |= carry_over(volume, self._previous, self.cfg.carry_decay, self.cfg.carry_reset_mm,
-                                self.cfg.trunc_voxels * self.cfg.voxel_size * 1e3)
+            carried, wobble = carry_over(volume, self._previous, self.cfg.carry_decay, self.cfg.carry_reset_mm,
+                                         self.cfg.trunc_voxels * self.cfg.voxel_size * 1e3, self._previous_wobble)
+            counts |= carried
         self._spare, self._previous, self._previous_key = self._previous, volume, key
+        self._previous_wobble = wobble
         return counts
 
     def new_volume(self) -> o3d.t.geometry.VoxelBlockGrid:
