@@ -36,6 +36,10 @@ The history counts less where the scene moved, and not at all where it changed:
 - a voxel this set did not see (nothing it carries can appear without a camera seeing it now:
   no ghosts, and the meshed extent is this set's own).
 
+``carry_decay`` 0.8 (the default) against 0.7, ``bench/stability.py --seeds 3 8``: still studios
+0.28 / 0.28 mm jitter against 0.31 / 0.30 (0.61 / 0.60 with no carry), the turning ones 1.36 /
+1.35 mm accuracy against 1.34 / 1.34 (1.36 / 1.35 with no carry).
+
 The arithmetic runs in torch on the volume's own memory (DLPack, no copy), so the CPU and the
 CUDA volumes share this code.
 """

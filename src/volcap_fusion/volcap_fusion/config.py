@@ -47,7 +47,7 @@ class FusionConfig:
     depth_upsample: int = setting(1, 'depth resampled this many times finer before integration', 1, 4,
                                   read_only=True)
     edge_tolerance: float = setting(0.02, 'depth step (m, +1 %) that separates surfaces', 0.0, 1.0, read_only=True)
-    carry_decay: float = setting(0.7, 'share of the last frame set\'s weight a still voxel carries into the next (an '
+    carry_decay: float = setting(0.8, 'share of the last frame set\'s weight a still voxel carries into the next (an '
                                  'exponential average over frame sets where the scene holds still; 0: each set '
                                  'fused alone)', 0.0, 0.95, read_only=True)
     carry_reset_mm: float = setting(1.5, 'scale (mm) of a block of voxels\' surface motion since the last frame set: '
