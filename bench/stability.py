@@ -12,8 +12,11 @@ temporal state) and fused with the ground-truth poses at the graph's voxel size;
   the frames after the filter has settled (from the third).
 
     python bench/stability.py [--seeds 3 8] [--frames 10] [--alphas 0 0.1] [--motions none turn] [--complete-radius 4]
-                              [--complete-extend 2] [--carry-decays 0 0.7] [--carry-reset-mm 1.5]
+                              [--complete-extend 2] [--carry-decays 0 0.7] [--carry-reset-mm 1.5] [--bands]
                               [--json bench_out/stability.json]
+
+``--bands`` also splits each sequence's jitter by height above the subject's lowest point (the
+shoes, the ankles, the body): where the shimmer is.
 """
 import argparse
 import json
@@ -28,7 +31,7 @@ from volcap_core.poses import invert, matrix_from_list, transform_points
 from volcap_eval.fusion import dropout_rate, score_frame
 from volcap_filter.pipeline import DepthFilterConfig
 from volcap_fusion.config import VOXEL_SIZE
-from volcap_fusion.stability import format_stability, sequence_stability
+from volcap_fusion.stability import SAMPLES, WITHIN_MM, SurfaceLookup, format_stability, sequence_stability, surface_points
 from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion
 from volcap_pipeline.replay import cleaned_frame_sets
 from volcap_studio.session import GroundTruth, synthesize
@@ -63,6 +66,33 @@ def fuse_sequence(bag: Path, configs: dict[str, DepthFilterConfig], fusions: dic
                 model.vertices = transform_points(invert(T_sw), model.vertices).astype(np.float32)
                 models[name, f].append(model)
     return models, stamps, {c: float(np.mean(v)) for c, v in ms.items()}
+
+
+BANDS_M = (0.0, 0.06, 0.15, 0.5, 3.0)    # height above the subject's lowest point: shoes, ankles, legs, body
+
+
+def jitter_by_height(models: list, motion_of, T_studio_world: np.ndarray) -> list[dict]:
+    """The sequence's surface jitter (``volcap_fusion.stability.frame_change``'s matched points,
+    both directions) split by height in the studio frame above the models' lowest point: per
+    band its RMS (mm), its share of the mean square and of the points."""
+    R, t = T_studio_world[:3, :3], T_studio_world[:3, 3]
+    floor = np.percentile(np.concatenate([m.vertices @ R.T + t for m in models])[:, 2], 0.1)
+    distances, heights = [], []
+    for k, (a, b) in enumerate(zip(models, models[1:])):
+        forward = motion_of(k)
+        for model, lookup, T, s in ((b, SurfaceLookup(a), np.linalg.inv(forward), 0), (a, SurfaceLookup(b), forward, 1)):
+            points, _ = surface_points(model, SAMPLES, s)
+            d, _ = lookup.closest(points @ T[:3, :3].T + T[:3, 3])
+            near = d <= WITHIN_MM / 1000
+            distances.append(d[near] * 1000)
+            heights.append((points[near] @ R.T + t)[:, 2] - floor)
+    d2, h = np.concatenate(distances) ** 2, np.concatenate(heights)
+    rows = []
+    for lo, hi in zip(BANDS_M, BANDS_M[1:]):
+        band = (h >= lo) & (h < hi)
+        rows.append({'band_m': [lo, hi], 'jitter_rms_mm': float(np.sqrt(d2[band].mean())) if band.any() else None,
+                     'share_of_mean_square': float(d2[band].sum() / d2.sum()), 'share_of_points': float(band.mean())})
+    return rows
 
 
 def truth_frame(gt: GroundTruth, stamp_ns: int) -> dict:
@@ -108,6 +138,7 @@ def main():
                     help='the fusion\'s carry_decay values (0: each frame set fused alone)')
     ap.add_argument('--carry-reset-mm', type=float, default=FusionConfig().carry_reset_mm,
                     help='the fusion\'s carry_reset_mm')
+    ap.add_argument('--bands', action='store_true', help='split the jitter by height above the lowest point')
     ap.add_argument('--work', default='bench_out/stability')
     ap.add_argument('--json', default='bench_out/stability.json')
     args = ap.parse_args()
@@ -142,11 +173,18 @@ def main():
                        'jitter_per_pair_mm': [p['jitter_rms_mm'] for p in stability['pairs']],
                        'flicker_per_pair': [p['flicker_de'] for p in stability['pairs']],
                        **scores}
+                if args.bands:
+                    row['jitter_by_height'] = jitter_by_height(settled, motion_of, np.asarray(gt.doc['T_studio_world'], float))
                 results.append(row)
                 print(f'seed {seed} motion {motion:4s} {name} {format_stability(stability)}; accuracy '
                       f'{scores["accuracy_mm"]:.2f} mm, completeness {100 * scores["completeness"]:.1f} %, feet '
                       f'{100 * scores["completeness_feet"]:.1f} %; cleaning {ms[filter_name]:.0f} ms/camera frame; fusion '
                       f'{row["fuse_ms"]:.0f} ms/set, of it carry {row["carry_ms"]:.0f} ms', flush=True)
+                for band in row.get('jitter_by_height', []):
+                    lo, hi = (100 * x for x in band['band_m'])
+                    print(f'    {lo:.0f}-{hi:.0f} cm above the lowest point: jitter {band["jitter_rms_mm"] or 0:.2f} mm RMS, '
+                          f'{100 * band["share_of_mean_square"]:.0f} % of the mean square on '
+                          f'{100 * band["share_of_points"]:.1f} % of the surface', flush=True)
             print(f'  ({time.perf_counter() - t0:.0f} s)', flush=True)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
