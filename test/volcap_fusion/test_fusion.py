@@ -193,7 +193,7 @@ def test_a_surface_that_swings_back_and_forth_is_averaged_and_one_that_moves_on_
     assert lag[carry][-1] < 0.001 and lag[carry][-1] < lag[carry][0], lag
 
 
-def test_a_camera_that_moved_starts_the_carry_again():
+def test_a_camera_that_moved_a_new_take_or_a_pause_starts_the_carry_again():
     fusion = TsdfFusion(FusionConfig(voxel_size=0.006))
     views = sphere_views()
     fusion.fuse(views)
@@ -206,6 +206,14 @@ def test_a_camera_that_moved_starts_the_carry_again():
     assert not fusion.fuse(moved).carried['restarted']
     fusion.forget()                                 # a new take
     assert fusion.fuse(moved).carried['restarted']
+    # stamped: the next frame set carries, one after a pause or from before does not
+    second = 1_000_000_000
+    fusion.forget()
+    assert fusion.fuse(moved, stamp_ns=10 * second).carried['restarted']
+    assert not fusion.fuse(moved, stamp_ns=10 * second + 33_000_000).carried['restarted']
+    assert fusion.fuse(moved, stamp_ns=20 * second).carried['restarted']    # past carry_max_gap_s
+    assert fusion.fuse(moved, stamp_ns=15 * second).carried['restarted']    # a replay started again
+    assert not fusion.fuse(moved, stamp_ns=15 * second + 33_000_000).carried['restarted']
 
 
 def test_capture_box_cuts_what_lies_outside():

@@ -54,6 +54,9 @@ class FusionConfig:
                                     'moved this far beyond twice its recent wobble, it keeps e^-0.5 of its history; '
                                     'three times as far, none',
                                     0.01, 100.0, read_only=True)
+    carry_max_gap_s: float = setting(2.0, 'a frame set this long (s) after the last one fused, or stamped before it, '
+                                     'carries nothing over (a pause, a new take, a replay started again)', 0.0, 3600.0,
+                                     read_only=True)
     device: str = setting('auto', 'CPU:0, CUDA:0 or auto (CUDA when Open3D has it)', read_only=True)
 
     def validate(self) -> None:

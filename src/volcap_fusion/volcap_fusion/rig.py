@@ -72,7 +72,7 @@ class RigFusion:
         out = FusedSet(stamp_ns, plan, frame, T_frame_world)
         if plan.skipped:
             return out
-        out.model = self.fusion.fuse(plan.views, on_floor=on_floor)
+        out.model = self.fusion.fuse(plan.views, on_floor=on_floor, stamp_ns=stamp_ns)
         if not out.empty and (glb or (self.writer is not None and 'glb' in self.writer.formats)):
             out.encoded = encode(out.model, self.encoding, stamp_ns, self.writer.written if self.writer else None,
                                  frame)

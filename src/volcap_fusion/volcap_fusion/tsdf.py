@@ -262,6 +262,7 @@ class TsdfFusion:
         self._previous: o3d.t.geometry.VoxelBlockGrid | None = None   # the last step's volume (carry)
         self._previous_key: tuple | None = None
         self._previous_wobble = None                                   # carry.BlockWobble of the last step
+        self._previous_stamp: int | None = None
 
     def rectifier(self, view: CameraView) -> Rectifier:
         key = (view.depth_model, view.color_model)
@@ -291,16 +292,20 @@ class TsdfFusion:
         self._previous_key = None
 
     def _carry(self, volume: o3d.t.geometry.VoxelBlockGrid, views: list[CameraView],
-               box: tuple[np.ndarray, np.ndarray]) -> dict:
+               box: tuple[np.ndarray, np.ndarray], stamp_ns: int | None) -> dict:
         """Averages the last step into ``volume`` where it held still (``carry.carry_over``) when
-        both share the capture box and every camera in both kept its pose; then ``volume``
-        becomes the last step and the last one's memory the spare."""
+        both share the capture box, every camera in both kept its pose and (with stamps) this
+        step follows the last within ``carry_max_gap_s``; then ``volume`` becomes the last step
+        and the last one's memory the spare."""
         from .carry import carry_over  # torch: loaded only when the carry is on
         key = (np.concatenate(box).tobytes(), {v.name: np.asarray(v.T_world_camera, np.float64).tobytes()
                                                for v in views})
         counts = {'seen_twice': 0, 'carried': 0, 'moved': 0, 'restarted': True}
         last, wobble = self._previous_key, None
-        if (self._previous is not None and last is not None and last[0] == key[0]
+        since = self._previous_stamp
+        in_time = (stamp_ns is None or since is None
+                   or 0 < stamp_ns - since <= self.cfg.carry_max_gap_s * 1e9)
+        if (self._previous is not None and last is not None and last[0] == key[0] and in_time
                 and all(last[1].get(name, pose) == pose for name, pose in key[1].items())):
             counts['restarted'] = False
             carried, wobble = carry_over(volume, self._previous, self.cfg.carry_decay, self.cfg.carry_reset_mm,
@@ -308,6 +313,7 @@ class TsdfFusion:
             counts |= carried
         self._spare, self._previous, self._previous_key = self._previous, volume, key
         self._previous_wobble = wobble
+        self._previous_stamp = stamp_ns
         return counts
 
     def new_volume(self) -> o3d.t.geometry.VoxelBlockGrid:
@@ -388,10 +394,11 @@ class TsdfFusion:
         triangles = mesh.triangle.indices.numpy().astype(np.int32)
         return crop_to_box(vertices, colors_to_uint8(colors), triangles, *box)
 
-    def fuse(self, views: list[CameraView], on_floor: bool = False) -> FusedModel:
+    def fuse(self, views: list[CameraView], on_floor: bool = False, stamp_ns: int | None = None) -> FusedModel:
         """One time step: an empty volume, every view integrated, the still part of the last
         step carried over (``carry_decay``), the mesh extracted (in the frame of the views'
-        poses; ``on_floor``: see ``capture_box``)."""
+        poses; ``on_floor``: see ``capture_box``). ``stamp_ns``, the frame set's stamp: one more
+        than ``carry_max_gap_s`` after the last step, or not after it, carries nothing."""
         if not views:
             raise BadInput('no camera to fuse')
         t0 = time.perf_counter()
@@ -401,7 +408,7 @@ class TsdfFusion:
         seen = sum(self.integrate(volume, view, box) > 0 for view in views)
         t1 = time.perf_counter()
         timings = {'integrate': (t1 - t0) * 1e3}
-        carried = self._carry(volume, views, box) if self.cfg.carry_decay > 0 else {}
+        carried = self._carry(volume, views, box, stamp_ns) if self.cfg.carry_decay > 0 else {}
         t2 = time.perf_counter()
         if self.cfg.carry_decay > 0:
             timings['carry'] = (t2 - t1) * 1e3
