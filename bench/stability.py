@@ -31,7 +31,7 @@ from volcap_core.poses import invert, matrix_from_list, transform_points
 from volcap_eval.fusion import dropout_rate, score_frame
 from volcap_filter.pipeline import DepthFilterConfig
 from volcap_fusion.config import VOXEL_SIZE
-from volcap_fusion.stability import SAMPLES, WITHIN_MM, SurfaceLookup, format_stability, sequence_stability, surface_points
+from volcap_fusion.stability import format_stability, matched_points, sequence_stability
 from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion
 from volcap_pipeline.replay import cleaned_frame_sets
 from volcap_studio.session import GroundTruth, synthesize
@@ -72,21 +72,15 @@ BANDS_M = (0.0, 0.06, 0.15, 0.5, 3.0)    # height above the subject's lowest poi
 
 
 def jitter_by_height(models: list, motion_of, T_studio_world: np.ndarray) -> list[dict]:
-    """The sequence's surface jitter (``volcap_fusion.stability.frame_change``'s matched points,
-    both directions) split by height in the studio frame above the models' lowest point: per
-    band its RMS (mm), its share of the mean square and of the points."""
+    """The sequence's surface jitter (the matched points ``sequence_stability`` scores) split by
+    height in the studio frame above the models' lowest point: per band its RMS (mm), its share
+    of the mean square and of the points."""
     R, t = T_studio_world[:3, :3], T_studio_world[:3, 3]
     floor = np.percentile(np.concatenate([m.vertices @ R.T + t for m in models])[:, 2], 0.1)
-    distances, heights = [], []
-    for k, (a, b) in enumerate(zip(models, models[1:])):
-        forward = motion_of(k)
-        for model, lookup, T, s in ((b, SurfaceLookup(a), np.linalg.inv(forward), 0), (a, SurfaceLookup(b), forward, 1)):
-            points, _ = surface_points(model, SAMPLES, s)
-            d, _ = lookup.closest(points @ T[:3, :3].T + T[:3, 3])
-            near = d <= WITHIN_MM / 1000
-            distances.append(d[near] * 1000)
-            heights.append((points[near] @ R.T + t)[:, 2] - floor)
-    d2, h = np.concatenate(distances) ** 2, np.concatenate(heights)
+    matches = [matched_points(a, b, motion=motion_of(k), seed=k + 1) for k, (a, b) in enumerate(zip(models, models[1:]))
+               if len(a.triangles) and len(b.triangles)]
+    d2 = np.concatenate([(m.distances * 1000) ** 2 for m in matches])
+    h = np.concatenate([(m.points @ R.T + t)[:, 2] - floor for m in matches])
     rows = []
     for lo, hi in zip(BANDS_M, BANDS_M[1:]):
         band = (h >= lo) & (h < hi)

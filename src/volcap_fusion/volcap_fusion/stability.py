@@ -82,6 +82,41 @@ class SurfaceLookup:
         return np.linalg.norm(closest - points, axis=1), colors
 
 
+@dataclass
+class Matches:
+    """The points of two consecutive models matched to the other's surface, both directions
+    (B's points, then A's): where each lies on its own model, how far it is from the other
+    surface (m) and the two colours there; ``shares``: B's and A's surface farther than
+    ``within_mm`` (appeared, vanished)."""
+    points: np.ndarray
+    distances: np.ndarray
+    own: np.ndarray
+    other: np.ndarray
+    shares: tuple[float, float]
+
+
+def matched_points(a: FusedModel, b: FusedModel, within_mm: float = WITHIN_MM, samples: int = SAMPLES,
+                   motion: np.ndarray | None = None, seed: int = 0,
+                   lookups: tuple[SurfaceLookup, SurfaceLookup] | None = None) -> Matches:
+    """Points spread over B and over A, each matched to the other surface after the subject's
+    true ``motion`` (4x4, A to B; distances are kept by rigid motions); the matches within
+    ``within_mm``. Both models must have triangles."""
+    look_a, look_b = lookups or (SurfaceLookup(a), SurfaceLookup(b))
+    forward = np.eye(4) if motion is None else np.asarray(motion, np.float64)
+    backward = np.linalg.inv(forward)
+    points, distances, own, other, shares = [], [], [], [], []
+    for model, lookup, T, s in ((b, look_a, backward, seed), (a, look_b, forward, seed + 1)):
+        p, colors = surface_points(model, samples, s)
+        d, c = lookup.closest(p @ T[:3, :3].T + T[:3, 3])
+        near = d <= within_mm / 1000
+        shares.append(float(1.0 - near.mean()))
+        points.append(p[near])
+        distances.append(d[near])
+        own.append(colors[near])
+        other.append(c[near])
+    return Matches(*(np.concatenate(x) for x in (points, distances, own, other)), (shares[0], shares[1]))
+
+
 def frame_change(a: FusedModel, b: FusedModel, within_mm: float = WITHIN_MM, samples: int = SAMPLES,
                  motion: np.ndarray | None = None, seed: int = 0,
                  lookups: tuple[SurfaceLookup, SurfaceLookup] | None = None) -> FrameChange:
@@ -91,24 +126,12 @@ def frame_change(a: FusedModel, b: FusedModel, within_mm: float = WITHIN_MM, sam
     if len(a.triangles) == 0 or len(b.triangles) == 0:
         empty_a, empty_b = len(a.triangles) == 0, len(b.triangles) == 0
         return FrameChange(None, None, 0.0 if empty_b else 1.0, 0.0 if empty_a else 1.0, 0)
-    look_a, look_b = lookups or (SurfaceLookup(a), SurfaceLookup(b))
-    forward = np.eye(4) if motion is None else np.asarray(motion, np.float64)
-    backward = np.linalg.inv(forward)
-    distances, own, other, shares = [], [], [], []
-    # distances are kept by rigid motions: each model's points go to the other's pose
-    for model, lookup, T, s in ((b, look_a, backward, seed), (a, look_b, forward, seed + 1)):
-        points, colors = surface_points(model, samples, s)
-        d, c = lookup.closest(points @ T[:3, :3].T + T[:3, 3])
-        near = d <= within_mm / 1000
-        shares.append(float(1.0 - near.mean()))
-        distances.append(d[near])
-        own.append(colors[near])
-        other.append(c[near])
-    d = np.concatenate(distances)
-    if not len(d):
-        return FrameChange(None, None, shares[0], shares[1], 0)
-    flicker = delta_e2000(np.concatenate(own), np.concatenate(other))
-    return FrameChange(float(np.sqrt(np.mean(d ** 2)) * 1000), float(np.mean(flicker)), shares[0], shares[1], len(d))
+    m = matched_points(a, b, within_mm, samples, motion, seed, lookups)
+    if not len(m.distances):
+        return FrameChange(None, None, *m.shares, 0)
+    flicker = delta_e2000(m.own, m.other)
+    return FrameChange(float(np.sqrt(np.mean(m.distances ** 2)) * 1000), float(np.mean(flicker)), *m.shares,
+                       len(m.distances))
 
 
 def sequence_stability(models: Iterable[FusedModel], within_mm: float = WITHIN_MM, samples: int = SAMPLES,
