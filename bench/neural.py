@@ -5,6 +5,7 @@
   the neural method (networks D and their live region LUTs) against the true colours
   (CIEDE2000, one 3x3 shared), pairwise against the true colours' floor, saturated chroma
   against the truth's, beside the chart-free gain model and the paper's baselines;
+- the floor of E's held-out RMS there: E fitted to one view alone (``--single-view-floor``);
 - the synthetic studio (8 cameras, seeds 7 and 0; rendered and calibrated from its board
   views, so the reference is anchored to the chart): ``volcap harmonise`` with the demo's
   short settings, then ``volcap eval color`` on frame sets it never saw: neural against
@@ -13,7 +14,7 @@
   pixel with torch.
 
     python bench/neural.py [--out bench_out/neural] [--frames-seeds 0 1 2] [--studio-seeds 7 0]
-        [--field hashgrid|paper]
+        [--field hashgrid|paper] [--single-view-floor 0]
 
 Each run's full report is written beside ``bench_neural.json``; figures: the colour methods and
 images of each run (``figures/``).
@@ -57,10 +58,29 @@ def real_texture(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
             'field_seconds': manifest['field']['seconds'],
             'mapper_seconds': sum(r['seconds'] for r in manifest['mappers'].values()),
             'field_held_out_rms': manifest['field_error']['rms_levels'],
+            'field_held_out_median': manifest['field_error']['median_levels'],
+            'field_held_out_rms_best_95': manifest['field_error']['rms_best_95_levels'],
+            'grid_cell_mm': manifest['grid_cell_mm'], 'registration': manifest['registration'],
             'export_error_mean_levels': float(np.mean([e['mean_levels'] for e in manifest['export_error'].values()])),
             'texture': manifest['texture'],
             'methods': {n: _row(rows, n) for n in ('original', *BASELINES, 'volcap_chart_free', 'neural',
                                                    'neural_live', 'true_colours')}}
+
+
+def single_view_floor(seed: int, out: Path, cfg: HarmoniseConfig, camera: int = 2, epochs: int = 120) -> dict:
+    """What E reaches on one view alone: the same field fitted to one camera's pixels only
+    (no other view to disagree with, ten times the steps), scored on its held-out pixels. The
+    images' own noise, sub-cell texture and their colour-to-depth misregistration at object
+    edges stay; disagreement between views does not."""
+    from volcap_color.neural import harmonise
+    from volcap_eval.color import distorted_frame_views
+    views, _ = distorted_frame_views(SHARED / 'rgbd_box', SHARED / 'rgbd_box' / 'intrinsics.K.txt', 8, seed)
+    view = views[camera]
+    harm = harmonise([[view]], [view.name], replace(cfg, seed=seed, field_epochs=epochs, mapper_points=1000,
+                                                    mapper_epochs=1), out / f'single_view_seed{seed}', progress=False)
+    e = harm.report['field_error']
+    return {'seed': seed, 'camera': view.name, 'epochs': epochs, 'rms_levels': e['rms_levels'],
+            'median_levels': e['median_levels'], 'rms_best_95_levels': e['rms_best_95_levels']}
 
 
 def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
@@ -122,6 +142,8 @@ def main() -> int:
     p.add_argument('--frames-seeds', type=int, nargs='*', default=[0, 1, 2])
     p.add_argument('--studio-seeds', type=int, nargs='*', default=[7, 0])
     p.add_argument('--field', default='hashgrid', choices=('hashgrid', 'paper'))
+    p.add_argument('--single-view-floor', type=int, nargs='*', default=[0], metavar='SEED',
+                   help='rgbd_box seeds on which to fit E to one view alone, the floor of its held-out RMS')
     args = p.parse_args()
     transport.configure()
     out = Path(args.out)
@@ -136,12 +158,20 @@ def main() -> int:
         m = r['methods']
         print(f"rgbd_box seed {seed}: harmonise {r['harmonise_seconds']:.0f} s (E {r['field_seconds']:.0f} s, "
               f"D {r['mapper_seconds']:.0f} s; target <= 600), E held-out RMS {r['field_held_out_rms']:.2f} levels "
-              f"(target <= 6); truth CIEDE2000 neural {_f(m['neural']['truth_de2000'])} / live "
+              f"(target <= 6; median {r['field_held_out_median']:.1f}, 95 % best {r['field_held_out_rms_best_95']:.1f}; "
+              f"{r['grid_cell_mm']:.1f} mm cells); truth CIEDE2000 neural {_f(m['neural']['truth_de2000'])} / live "
               f"{_f(m['neural_live']['truth_de2000'])} (target <= 1.6; gain model "
               f"{_f(m['volcap_chart_free']['truth_de2000'])}, untouched {_f(m['original']['truth_de2000'])}); "
               f"pairwise {_f(m['neural']['de2000_mean'])} (floor {_f(m['true_colours']['de2000_mean'])}, target <= "
               f"floor + 0.3); saturated chroma {_f(m['neural']['chroma_after'], 1)} vs truth's "
               f"{_f(m['true_colours']['chroma_after'], 1)} (target within 10 %)", flush=True)
+    result['single_view_floor'] = []
+    for seed in args.single_view_floor:
+        r = single_view_floor(seed, out, cfg)
+        result['single_view_floor'].append(r)
+        print(f"rgbd_box seed {seed}, E on {r['camera']} alone ({r['epochs']} epochs): held-out RMS "
+              f"{r['rms_levels']:.2f} levels (median {r['median_levels']:.1f}, 95 % best "
+              f"{r['rms_best_95_levels']:.1f}): the floor the 8 views' E is held to", flush=True)
     for seed in args.studio_seeds:
         r = studio(seed, out, cfg)
         result['studio'].append(r)

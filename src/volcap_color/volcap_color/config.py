@@ -83,15 +83,19 @@ class HarmoniseConfig:
     point_frequencies: int = setting(10, 'positional encoding frequencies of the point (paper)', 0, 32)
     camera_frequencies: int = setting(4, 'positional encoding frequencies of the camera position (paper)', 0, 32)
     grid_levels: int = setting(12, 'hash grid levels (hashgrid)', 1, 32)
-    grid_log2_table: int = setting(16, 'hash grid entries per level, log2 (hashgrid)', 8, 24)
-    grid_cell_mm: float = setting(4.0, 'hash grid: size of the finest level\'s cells in mm (about the pixel '
-                                  'footprint on the subject)', 0.1, 1000.0)
+    grid_log2_table: int = setting(18, 'hash grid entries per level, log2 (hashgrid)', 8, 24)
+    grid_cell_mm: float | None = setting(None, 'hash grid: size of the finest level\'s cells in mm (None: the '
+                                         'training views\' median pixel footprint on the surface, depth over focal '
+                                         'length, at least 1 mm)', 0.1, 1000.0)
     edge_levels: float = setting(12.0, 'E weighs each pixel 1 / (1 + (g / edge_levels)^2) by its luminance gradient g '
                                  '(levels per pixel): texture edges, where registration error changes the colour, '
                                  'count less (0: all pixels alike)', 0.0, 1000.0)
     robust_levels: float = setting(4.0, 'E\'s loss: Cauchy with this scale in levels, so pixels far from the '
                                    'field (registration error, occlusion edges) pull less on the camera responses '
                                    '(0: least squares)', 0.0, 255.0)
+    register_views: bool = setting(True, 'hashgrid: E also learns a small rigid correction of each view (rotation '
+                                   'about its centre, translation), so misregistration between views is not '
+                                   'taken for texture or colour', )
     head_width: int = setting(64, 'hidden width of the hash grid field\'s MLP (hashgrid)', 4, 1024)
     mapper_input: str = setting('field', 'what each D is trained to map: field (ours: E\'s colour of the point as '
                                 'this camera records it, so input and target are the same surface colour and D '

@@ -74,6 +74,8 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     dev = torch_device(device)
     state = torch.load(models_dir / FIELD_FILE, map_location=dev, weights_only=False)['state']
     field_model = field_from_state(state, cfg).to(dev)
+    if isinstance(field_model, HashGridField):      # fields written before the views' registration
+        state.setdefault('registration', torch.zeros_like(field_model.registration))
     field_model.load_state_dict(state)
     field_model.eval()
     mappers = {}

@@ -11,6 +11,12 @@ import numpy as np
 import torch
 from torch import nn
 
+# a view correction's units (rad, m) per unit of its parameter, and its learning rate against
+# the field's: steps of 1e-5 rad and 1e-5 m, so over a short run a correction can reach a few
+# tenths of a degree and a few millimetres, what calibration and tracking errors are
+REGISTRATION_SCALE = 0.01
+REGISTRATION_LR_SCALE = 0.1
+
 # Instant-NGP's spatial hash: the coordinates times these primes, xor-ed (the first is 1 so a
 # coarse level whose grid fits the table is indexed without collisions along x)
 HASH_PRIMES = (1, 2654435761, 805459861)
@@ -191,6 +197,10 @@ class HashGridField(_Normalised):
         self.grid = HashGrid(levels, log2_table, coarsest, finest)
         self.latent = nn.Sequential(nn.Linear(self.grid.out_features, width), nn.ReLU(), nn.Linear(width, 3))
         self.response = CameraResponse(len(centres))
+        # per camera a small rigid correction of its view (rotation vector about its centre,
+        # translation), in units of REGISTRATION_SCALE (rad, m) so Adam's steps suit both; see
+        # ``register``
+        self.registration = nn.Parameter(torch.zeros(len(centres), 6))
 
     def surface_color(self, points: torch.Tensor) -> torch.Tensor:
         """Linear colour of the surface at ``points`` (the shared latent field)."""
@@ -198,6 +208,17 @@ class HashGridField(_Normalised):
 
     def camera_index(self, cameras: torch.Tensor) -> torch.Tensor:
         return torch.cdist(cameras.float(), self.centres).argmin(1)
+
+    def register(self, points: torch.Tensor, cameras: torch.Tensor) -> torch.Tensor:
+        """``points`` seen by the cameras at ``cameras`` moved by their view's correction: a
+        small rotation about the camera centre (first order: calibration or tracking error and a
+        colour-to-depth shift both move a view's points about its centre) and a translation. The
+        corrections are taken relative to their mean over the cameras, so the rig as a whole does
+        not drift. Identity until trained (``RegisteredField``)."""
+        idx = self.camera_index(cameras)
+        corr = (self.registration - self.registration.mean(0)) * REGISTRATION_SCALE
+        rot, shift = corr[idx, :3], corr[idx, 3:]
+        return points + torch.cross(rot, points - self.centres[idx], dim=-1) + shift
 
     def forward(self, points: torch.Tensor, cameras: torch.Tensor, xy: torch.Tensor | None = None) -> torch.Tensor:
         if xy is None:
@@ -208,7 +229,27 @@ class HashGridField(_Normalised):
         # Instant-NGP: a tiny epsilon for the sparse table entries, weight decay on the MLP only
         return [{'params': list(self.grid.parameters()), 'eps': 1e-15},
                 {'params': list(self.latent.parameters()), 'weight_decay': 1e-6},
-                {'params': list(self.response.parameters())}]
+                {'params': list(self.response.parameters())},
+                {'params': [self.registration], 'lr_scale': REGISTRATION_LR_SCALE}]
+
+
+class RegisteredField(nn.Module):
+    """A ``HashGridField`` trained together with the registration of its views: each training
+    pixel's point is moved by its camera's correction (``HashGridField.register``) before the
+    field is looked up, so a view misregistered by a millimetre does not smear the texture
+    every view shares (rgbd_box, seed 0: E's held-out RMS 18.8 -> 17.0 levels, corrections of
+    0.03-0.1 deg and 0.1-1.3 mm). After training the corrections are applied to the samples
+    once (``neural.harmonise``) and the field is used unwrapped."""
+
+    def __init__(self, field: HashGridField):
+        super().__init__()
+        self.field = field
+
+    def forward(self, points: torch.Tensor, cameras: torch.Tensor, xy: torch.Tensor | None = None) -> torch.Tensor:
+        return self.field(self.field.register(points, cameras), cameras, xy)
+
+    def optimiser_groups(self) -> list[dict]:
+        return self.field.optimiser_groups()
 
 
 class CaptureMapper(nn.Module):

@@ -69,6 +69,9 @@ def train(model: nn.Module, inputs: tuple[torch.Tensor, ...], target: torch.Tens
     if its settings differ)."""
     device = target.device
     groups = model.optimiser_groups() if hasattr(model, 'optimiser_groups') else [{'params': list(model.parameters())}]
+    for g in groups:        # a group may ask for a multiple of the learning rate
+        if 'lr_scale' in g:
+            g['lr'] = lr * g.pop('lr_scale')
     optimiser = torch.optim.Adam(groups, lr=lr)
     gamma = (lr_final / lr) ** (1.0 / max(epochs, 1)) if lr_final else 1.0
     schedule = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
