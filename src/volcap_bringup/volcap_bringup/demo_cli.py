@@ -42,8 +42,14 @@ class DemoConfig:
                               0.001, 10.0)
 
     def harmonise(self) -> dict:
+        # The short run's E takes about 290 steps: too few to fill finer cells, a larger table or
+        # the views' registration, which help a full run on real texture. Measured on the demo's
+        # studio (seed 0 / 7, pairwise / truth CIEDE2000): 4 mm cells, 2^16 entries, unregistered
+        # 3.46 / 2.59 and 3.33 / 2.98; the full run's layout (2.8 mm, 2^18, registered) 3.63 /
+        # 2.77 and 3.40 / 3.00 (docs/benchmarks.md, issue 29)
         return {'points': self.harmonise_points, 'field_epochs': self.harmonise_epochs, 'mapper_points': 30_000,
-                'mapper_epochs': self.mapper_epochs}
+                'mapper_epochs': self.mapper_epochs, 'grid_cell_mm': 4.0, 'grid_log2_table': 16,
+                'register_views': False}
 
 
 def cmd_demo(args) -> int:
