@@ -355,3 +355,14 @@ def test_the_field_registers_a_misregistered_view(tmp_path):
     reg = with_reg.report['registration']
     assert set(reg) == set(GAINS) and max(reg, key=lambda c: reg[c]['translation_mm']) == 'cam1', reg
     assert not np.any(without.field.registration.detach().numpy())
+
+
+def test_the_finest_cells_follow_the_views_pixel_footprint():
+    """By default the hash grid's finest cells are the median pixel footprint on the surface
+    (depth over focal length), never finer than 1 mm; the manifest says which was used."""
+    from volcap_color.neural import MIN_CELL_MM, pixel_footprint_mm
+    cam = CameraModel(64, 48, 500.0, 500.0, 32, 24)
+    color = np.zeros((48, 64, 3), np.uint8)
+    view = lambda z: View('cam0', color, np.full((48, 64), z, np.float32), cam, np.eye(4))
+    assert pixel_footprint_mm([view(1.0), view(1.5), view(2.0)]) == pytest.approx(3.0)
+    assert pixel_footprint_mm([view(0.2)]) == MIN_CELL_MM
