@@ -1,11 +1,12 @@
 """E's camera responses against the hidden ones of ``volcap eval color-frames``' distorted views
 (issue 29): where the neural method's distance to the truth comes from.
 
-For a ``bench/neural.py`` output folder, E's response of every camera at its image centre over
-a grey ramp of the latent colour, against the camera's hidden response (``ColorResponse``:
-gain, white balance, crosstalk, gamma) after the best transform shared by every camera (a
-scale per channel and one power, Nelder-Mead): RMS and mean difference per camera and channel,
-in levels.
+For a ``bench/neural.py`` output folder: every camera's response as E learnt it, over a grey
+ramp of the latent colour at the image centre, inverted through the camera's hidden response
+(``ColorResponse.true_colors``, the ideal camera's colour). Were E's responses exact, every
+camera would give the same colour for the same latent colour; the difference of each camera
+from the mean over the cameras is its response error (what D, inverting E's response, carries
+into the harmonised colours), per channel in levels: RMS and mean over the ramp.
 
     python bench/neural_responses.py [--out bench_out/neural] [--seed 0]
 """
@@ -16,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.optimize import minimize
 
 from volcap_color.neural_models import load_harmonisation
 from volcap_studio.render import ColorResponse
+
+RAMP = np.linspace(0.02, 0.8, 40)       # latent (linear) grey levels, within the scene's gamut
 
 
 def main() -> int:
@@ -31,31 +33,23 @@ def main() -> int:
     harm = load_harmonisation(out / f'frames_seed{args.seed}')
     report = json.loads((out / f'frames_seed{args.seed}.json').read_text())
     hidden = {c: ColorResponse.from_dict(v) for c, v in report['responses'].items()}
-    field = harm.field
-    ramp = torch.linspace(0.02, 0.8, 40)[:, None].repeat(1, 3)
-    centre = torch.full((40, 2), 0.5)
-    rows = []
+    size = (640, 480)                    # rgbd_box's images
+    centre = np.tile([[(size[0] - 1) / 2, (size[1] - 1) / 2]], (len(RAMP), 1))
+    latent = torch.as_tensor(np.repeat(RAMP[:, None], 3, 1), dtype=torch.float32)
+    field, true = harm.field, {}
     for c in harm.cameras:
-        k = int(field.camera_index(torch.as_tensor(harm.centres[c][None]))[0])
+        k = field.camera_index(torch.as_tensor(harm.centres[c][None])).expand(len(RAMP))
         with torch.no_grad():
-            recorded = field.response(ramp, torch.full((40,), k), centre).numpy()
-        rows.append((c, recorded, hidden[c]))
-
-    def true(r: ColorResponse, radiance: np.ndarray) -> np.ndarray:
-        x = (radiance * r.gain * np.asarray(r.white_balance)) @ np.asarray(r.crosstalk).T
-        return np.clip(x, 0.0, 1.0) ** (1.0 / r.gamma)
-
-    def shared(v, r):        # the hidden response of the latent ramp under the shared transform
-        lat = ramp.numpy() ** v[3]
-        return np.stack([true(r, np.outer(v[ch] * lat[:, ch], np.ones(3)))[:, ch] for ch in range(3)], 1)
-    fit = minimize(lambda v: np.mean([np.mean((e - shared(v, r)) ** 2) for _, e, r in rows]), [1, 1, 1, 1],
-                   method='Nelder-Mead', options={'maxiter': 4000})
-    print(f'shared transform: scale per channel {np.round(fit.x[:3], 3)}, power {fit.x[3]:.3f}; '
-          f'RMS over every camera {np.sqrt(fit.fun) * 255:.2f} levels')
-    for c, e, r in rows:
-        d = (e - shared(fit.x, r)) * 255
-        print(f'{c} (hidden gamma {r.gamma:.2f}, gain {r.gain:.2f}): RMS {np.round(np.sqrt((d ** 2).mean(0)), 1)}, '
-              f'mean {np.round(d.mean(0), 1)} levels (R, G, B)')
+            recorded = field.response(latent, k, torch.full((len(RAMP), 2), 0.5)).numpy()
+        true[c] = hidden[c].true_colors(recorded, centre, size)
+    mean = np.mean(list(true.values()), axis=0)
+    spread = np.sqrt(np.mean([(t - mean) ** 2 for t in true.values()])) * 255
+    print(f'seed {args.seed}: E\'s responses inverted through the hidden ones, RMS over every camera from their '
+          f'mean {spread:.2f} levels (0 for exact responses)')
+    for c, t in true.items():
+        d = (t - mean) * 255
+        print(f'{c} (hidden gamma {hidden[c].gamma:.2f}, gain {hidden[c].gain:.2f}): RMS '
+              f'{np.round(np.sqrt((d ** 2).mean(0)), 1)}, mean {np.round(d.mean(0), 1)} levels (R, G, B)')
     return 0
 
 

@@ -46,7 +46,7 @@ from .correspondence import View, split_frame_sets
 from .figures import training_figure
 from .neural_live import _mapper_error, export_live
 from .neural_models import CHECKPOINT, FIELD_FILE, MANIFEST, Harmonisation
-from .neural_nets import REGISTRATION_SCALE, CaptureMapper, ColorField, HashGridField, RegisteredField
+from .neural_nets import CaptureMapper, ColorField, HashGridField, RegisteredField
 from .neural_samples import SurfaceSamples, training_samples
 from .neural_train import Reference, TrainResult, _Call, _save_atomic, field_color, grey_world_gains, predict, torch_device, train, use_bf16
 
@@ -62,7 +62,9 @@ def pixel_footprint_mm(views: list[View]) -> float:
     length), in mm, at least ``MIN_CELL_MM``: the finest detail the images hold, so the size of the
     hash grid's finest cells (rgbd_box: 0.67 mm; a studio camera at 2-3 m about 3 mm)."""
     sizes = [float(np.median(v.depth[v.depth > 0])) / v.camera.fx * 1000.0 for v in views if np.any(v.depth > 0)]
-    return max(MIN_CELL_MM, float(np.median(sizes))) if sizes else 4.0
+    if not sizes:
+        raise BadInput('the training views have no pixel with depth')
+    return max(MIN_CELL_MM, float(np.median(sizes)))
 
 
 def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig, cell_mm: float = 4.0) -> nn.Module:
@@ -182,7 +184,7 @@ def registration_report(field_model: nn.Module, cameras: list[str], centres: dic
     """Each camera's view correction learnt with E: rotation in degrees, translation in mm."""
     if not isinstance(field_model, HashGridField):
         return None
-    corr = ((field_model.registration - field_model.registration.mean(0)) * REGISTRATION_SCALE).detach().cpu().numpy()
+    corr = field_model.corrections().detach().cpu().numpy()
     idx = field_model.camera_index(torch.as_tensor(np.stack([centres[c] for c in cameras]),
                                                    device=field_model.centres.device)).cpu().numpy()
     return {c: {'rotation_deg': float(np.degrees(np.linalg.norm(corr[k, :3]))),

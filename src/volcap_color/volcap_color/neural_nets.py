@@ -216,9 +216,14 @@ class HashGridField(_Normalised):
         corrections are taken relative to their mean over the cameras, so the rig as a whole does
         not drift. Identity until trained (``RegisteredField``)."""
         idx = self.camera_index(cameras)
-        corr = (self.registration - self.registration.mean(0)) * REGISTRATION_SCALE
+        corr = self.corrections()
         rot, shift = corr[idx, :3], corr[idx, 3:]
         return points + torch.cross(rot, points - self.centres[idx], dim=-1) + shift
+
+    def corrections(self) -> torch.Tensor:
+        """(cameras, 6) each view's correction: rotation vector (rad) and translation (m),
+        relative to their mean over the cameras."""
+        return (self.registration - self.registration.mean(0)) * REGISTRATION_SCALE
 
     def forward(self, points: torch.Tensor, cameras: torch.Tensor, xy: torch.Tensor | None = None) -> torch.Tensor:
         if xy is None:
@@ -237,8 +242,8 @@ class RegisteredField(nn.Module):
     """A ``HashGridField`` trained together with the registration of its views: each training
     pixel's point is moved by its camera's correction (``HashGridField.register``) before the
     field is looked up, so a view misregistered by a millimetre does not smear the texture
-    every view shares (rgbd_box, seed 0: E's held-out RMS 18.8 -> 17.0 levels, corrections of
-    0.03-0.1 deg and 0.1-1.3 mm). After training the corrections are applied to the samples
+    every view shares (rgbd_box, seeds 0-2, 1 mm cells: E's held-out RMS 18.6 -> 16.7 levels on
+    seed 0, corrections of 0.02-0.07 deg and 0.6-1.3 mm; docs/benchmarks.md). After training the corrections are applied to the samples
     once (``neural.harmonise``) and the field is used unwrapped."""
 
     def __init__(self, field: HashGridField):
