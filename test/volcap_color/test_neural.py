@@ -273,6 +273,10 @@ def test_models_written_before_the_color_spelling_still_load(trained, tmp_path):
     assert loaded.config == harm.config
     rgb, xy = np.full((4, 3), 0.5, np.float32), np.full((4, 2), 0.5, np.float32)
     assert np.allclose(loaded.map_colors('cam1', rgb, xy), harm.map_colors('cam1', rgb, xy), atol=1e-5)
+    # and one from before D's gain form has its D in the logit form it was trained in
+    report['config'].pop('mapper_form')
+    (old / 'manifest.json').write_text(json.dumps(report))
+    assert {m.form for m in load_harmonisation(old).mappers.values()} == {'logit'}
 
 
 def test_the_hash_grid_field_trains_deterministically_and_resumes(tmp_path):
@@ -366,3 +370,48 @@ def test_the_finest_cells_follow_the_views_pixel_footprint():
     view = lambda z: View('cam0', color, np.full((48, 64), z, np.float32), cam, np.eye(4))
     assert pixel_footprint_mm([view(1.0), view(1.5), view(2.0)]) == pytest.approx(3.0)
     assert pixel_footprint_mm([view(0.2)]) == MIN_CELL_MM
+
+
+def test_a_saturated_colour_is_taken_at_the_cameras_clip_level():
+    """``CameraResponse.unclipped``: where a camera records a colour saturated, the brightest
+    colour it records below saturation; a colour it records unclipped is left alone."""
+    from volcap_color.neural_nets import SATURATED, CameraResponse
+    response = CameraResponse(1)
+    with torch.no_grad():
+        response.gains.copy_(torch.tensor([[1.6, 1.0, 0.7]]))
+    linear = torch.tensor([[0.9, 0.9, 0.9], [0.3, 0.3, 0.3]])
+    camera, xy = torch.zeros(2, dtype=torch.long), torch.full((2, 2), 0.5)
+    with torch.no_grad():
+        recorded = response(linear, camera, xy)
+        kept = response.unclipped(linear, camera, xy)
+        at_clip = response(kept, camera, xy)
+    assert recorded[0, 0] >= SATURATED and recorded[0, 2] < SATURATED
+    from volcap_core.color import srgb_to_linear
+    # red: where 1.6 x reaches the level that rounds to white (the tone curve starts as sRGB's)
+    assert kept[0, 0] == pytest.approx(srgb_to_linear(SATURATED) / 1.6, rel=2e-3)
+    assert torch.equal(kept[0, 1:], linear[0, 1:]) and torch.equal(kept[1], linear[1])
+    assert SATURATED - 0.01 < at_clip[0, 0] < SATURATED
+
+
+def test_d_in_gains_maps_a_saturated_pixel_as_the_camera_recorded_it():
+    """D's gain form starts as the identity, and learns a camera that saturates (a gain of 1.4
+    in linear light, clipped at white) mapped onto its true colour up to white: a clipped pixel
+    goes where the brightest unclipped one goes, within a few levels (the logit form's
+    correction would have to change steeply at white)."""
+    from volcap_core.color import srgb_to_linear
+    rng = np.random.default_rng(3)
+    true = rng.random((6000, 3)).astype(np.float32) * 0.9
+    recorded = linear_to_srgb(np.clip(srgb_to_linear(true) * 1.4, 0, 1)).astype(np.float32)
+    target = linear_to_srgb(np.minimum(srgb_to_linear(true), 1 / 1.4)).astype(np.float32)   # at the clip level
+    xy = rng.random((6000, 2)).astype(np.float32)
+    torch.manual_seed(0)
+    mapper = CaptureMapper(32, 3)
+    mapper.eval()
+    probe = torch.tensor([[0.2, 0.5, 0.8], [1.0, 1.0, 1.0]])
+    with torch.no_grad():
+        assert torch.allclose(mapper(probe, torch.full((2, 2), 0.5)), probe, atol=1e-5)
+    train(mapper, (torch.as_tensor(recorded), torch.as_tensor(xy)), torch.as_tensor(target), epochs=30, batch=256,
+          lr=3e-3, seed=1, bf16=False, label='D gain', progress=False)
+    with torch.no_grad():
+        white = mapper(torch.ones(1, 3), torch.full((1, 2), 0.5))[0].numpy() * 255
+    assert np.abs(white - linear_to_srgb(np.full(3, 1 / 1.4)) * 255).max() < 3.0

@@ -57,6 +57,9 @@ class ColorFitConfig:
 
 
 
+# how D may change a colour (``neural_nets.CaptureMapper``)
+MAPPER_FORMS = ('gain', 'logit', 'none')
+
 # What each colour field trains with where its setting is left unset (None): the paper's
 # published settings for its MLP (with the sample count bounded for a CPU), and for the hash grid
 # what converged on 2 cores (docs/color.md, bench/neural.py).
@@ -105,6 +108,10 @@ class HarmoniseConfig:
                            'colours per pixel, spanning those the field holds, as E records them for the camera '
                            'at random image positions (the field is smoother than the images: without them D '
                            'is trained on a narrower gamut than it corrects)', 0.0, 10.0)
+    mapper_form: str = setting('gain', 'how D changes a colour: gain (ours: per-channel gains in linear light, '
+                               'smooth up to white, as exposure and white balance are), logit (an offset to the '
+                               'colour\'s logit, the form before 2026-12-06) or none (the paper: the whole mapping)',
+                               choices=MAPPER_FORMS)
     mapper_points: int = setting(80_000, 'pixels per camera for its D', 1, 100_000_000)
     mapper_epochs: int = setting(60, 'epochs of each D', 1, 100_000)
     mapper_batch: int = setting(4096, 'batch of each D', 1, 10_000_000)

@@ -120,10 +120,11 @@ def _with_gamut(field_model: HashGridField, reference: Reference, mine: SurfaceS
     colors = torch.as_tensor((rng.random((count, 3)) * top).astype(np.float32), device=device)
     where = torch.as_tensor(rng.random((count, 2)).astype(np.float32), device=device)
     cam = torch.as_tensor(np.asarray(centre, np.float32), device=device).expand(count, 3)
+    index = field_model.camera_index(cam)
     with torch.no_grad():
-        recorded = field_model.response(colors, field_model.camera_index(cam), where)
+        recorded = field_model.response(colors, index, where)
     return (np.concatenate([rgb, recorded.cpu().numpy()]), np.concatenate([xy, where.cpu().numpy()]),
-            torch.cat([target, reference.from_surface_color(colors)]))
+            torch.cat([target, reference.from_surface_color(field_model.response.unclipped(colors, index, where))]))
 
 
 def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.device) -> dict | None:
@@ -273,14 +274,14 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         own = [v for views in train_sets for v in views if v.name == cam]
         mine = pixels.select(rest[pixels.camera[rest] == i][:cfg.mapper_points])
         torch.manual_seed(cfg.seed + 1 + i)
-        mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers).to(device)
+        mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, cfg.mapper_form).to(device)
         done = _finished(out_dir / f'{cam}.mapper.pt', cfg, resume, device)
         if done:
             mapper.load_state_dict(done['state'])
             mapper_results[cam] = TrainResult(**done['result'])
         else:
             rng = np.random.default_rng(cfg.seed + 1 + i)
-            target = reference(t(mine.points))
+            target = mapper_targets(field_model, reference, mine, centres[cam], bf16)
             inputs = mapper_inputs(field_model, mine, centres[cam], cfg.mapper_input, bf16)
             rgb, xy, target = _with_background(own, inputs, mine.xy, target, int(cfg.background * len(mine)), rng)
             if cfg.mapper_input == 'field' and isinstance(field_model, HashGridField) and cfg.gamut > 0:
@@ -297,9 +298,10 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         fits[cam] = len(mine)
         check = held_samples.select(held_samples.camera == i)
         if len(check):
-            d_error[cam] = _mapper_error(field_model, mapper, check, reference, cfg.mapper_input, bf16)
+            wanted = mapper_targets(field_model, reference, check, centres[cam], bf16)
+            d_error[cam] = _mapper_error(field_model, mapper, check, wanted, cfg.mapper_input, bf16)
             # what D makes of the camera's own pixels against what the reference says they are
-            texture[cam] = texture_kept(reference(t(check.points)).cpu().numpy(),
+            texture[cam] = texture_kept(wanted.cpu().numpy(),
                                         predict(mapper, (t(check.colors), t(check.xy)), bf16).cpu().numpy())
     checkpoint.unlink(missing_ok=True)
     report = {
@@ -312,6 +314,23 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         'mapper_error': d_error, 'texture': texture,
         'centres': {c: v.tolist() for c, v in centres.items()}, 'config': asdict(cfg)}
     return Harmonisation(cameras, centres, field_model, mappers, cfg.reference, cfg, device, bf16, report)
+
+
+def mapper_targets(field_model: nn.Module, reference: Reference, samples: SurfaceSamples, centre: np.ndarray,
+                   bf16: bool) -> torch.Tensor:
+    """What D is to give the pixels ``samples`` of the camera at ``centre``: the reference
+    colour of each pixel's surface point; with a ``HashGridField``, where the camera records
+    the point saturated, the reference of the brightest colour it records below saturation
+    (``CameraResponse.unclipped``), as inverting its response would."""
+    device = next(field_model.parameters()).device
+    points = torch.as_tensor(samples.points, device=device)
+    if not isinstance(field_model, HashGridField):
+        return reference(points)
+    index = field_model.camera_index(torch.as_tensor(np.asarray(centre, np.float32), device=device)[None])
+    latent = predict(_Call(field_model.surface_color), (points,), bf16)
+    latent = predict(_Call(lambda a, xy: field_model.response.unclipped(a, index.expand(len(a)), xy)),
+                     (latent, torch.as_tensor(samples.xy, device=device)), False)
+    return reference.from_surface_color(latent)
 
 
 def mapper_inputs(field_model: nn.Module, samples: SurfaceSamples, centre: np.ndarray, kind: str, bf16: bool

@@ -14,7 +14,7 @@ from .correspondence import View
 from .neural_models import Harmonisation
 from .neural_nets import CaptureMapper
 from .neural_samples import SurfaceSamples
-from .neural_train import Reference, predict
+from .neural_train import predict
 
 
 def bake_region_lut(harm: Harmonisation, camera: str, colors: int | None = None,
@@ -49,17 +49,17 @@ def export_error(harm: Harmonisation, camera: str, lut: RegionLut, images: list[
             'pixels': int(d.size // 3)}
 
 
-def _mapper_error(field_model: nn.Module, mapper: CaptureMapper, samples: SurfaceSamples, reference: Reference,
+def _mapper_error(field_model: nn.Module, mapper: CaptureMapper, samples: SurfaceSamples, target: torch.Tensor,
                   kind: str, bf16: bool) -> dict:
-    """D against E's reference colour on ``samples`` (pixels D was not trained on), given what
-    it was trained to map (``kind``, ``neural.mapper_inputs``): RMS and 99th percentile of the
-    difference, in levels."""
+    """D against the colours it is to give ``samples`` (pixels D was not trained on;
+    ``target``: ``neural.mapper_targets``), given what it was trained to map (``kind``,
+    ``neural.mapper_inputs``): RMS and 99th percentile of the difference, in levels."""
     from .neural import mapper_inputs
     device = next(mapper.parameters()).device
     t = lambda a: torch.as_tensor(a, device=device)
     centre = samples.centres[0] if len(samples) else np.zeros(3, np.float32)
     inputs = mapper_inputs(field_model, samples, centre, kind, bf16)
-    d = (predict(mapper, (t(inputs), t(samples.xy)), bf16) - reference(t(samples.points))).cpu().numpy() * 255.0
+    d = (predict(mapper, (t(inputs), t(samples.xy)), bf16) - target).cpu().numpy() * 255.0
     return {'rms_levels': float(np.sqrt(np.mean(d ** 2))), 'p99_levels': float(np.percentile(np.abs(d), 99)),
             'pixels': len(samples)}
 

@@ -67,8 +67,9 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     # folders written before identifiers were spelt "color" say lut_colours
     cfg_dict = {k.replace('colour', 'color'): v for k, v in manifest['config'].items()}
     cfg_dict['lut_grid'] = tuple(cfg_dict['lut_grid'])
-    # folders written before the hash grid field have the paper's E and D without the skip
-    earlier = 'field' not in cfg_dict
+    # folders written before the hash grid field have the paper's E and D without the skip,
+    # those written before D's gain form its logit form
+    cfg_dict.setdefault('mapper_form', 'logit' if 'field' in cfg_dict else 'none')
     cfg_dict.setdefault('field', 'paper')
     cfg = HarmoniseConfig(**cfg_dict)
     dev = torch_device(device)
@@ -80,7 +81,7 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     field_model.eval()
     mappers = {}
     for cam in manifest['cameras']:
-        m = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, skip=not earlier).to(dev)
+        m = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, cfg.mapper_form).to(dev)
         m.load_state_dict(torch.load(models_dir / f'{cam}.mapper.pt', map_location=dev, weights_only=False)['state'])
         m.eval()
         mappers[cam] = m

@@ -11,6 +11,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .config import MAPPER_FORMS
+
 # a view correction's units (rad, m) per unit of its parameter, and its learning rate against
 # the field's: steps of 1e-5 rad and 1e-5 m, so over a short run a correction can reach a few
 # tenths of a degree and a few millimetres, what calibration and tracking errors are
@@ -20,6 +22,9 @@ REGISTRATION_LR_SCALE = 0.1
 # Instant-NGP's spatial hash: the coordinates times these primes, xor-ed (the first is 1 so a
 # coarse level whose grid fits the table is indexed without collisions along x)
 HASH_PRIMES = (1, 2654435761, 805459861)
+
+# a recorded value that rounds to 255: the camera saturated
+SATURATED = 1.0 - 0.5 / 255.0
 
 
 def positional_encoding(v: torch.Tensor, frequencies: int) -> torch.Tensor:
@@ -175,6 +180,26 @@ class CameraResponse(nn.Module):
         pos = x.clamp(0.0, 1.0)[..., None] * self.knots - torch.arange(self.knots, device=x.device)
         return ((pos.clamp(0.0, 1.0) * slope).sum(-1) / self.knots).clamp(0.0, 1.0)
 
+    def unclipped(self, linear: torch.Tensor, camera: torch.Tensor, xy: torch.Tensor, iterations: int = 16
+                  ) -> torch.Tensor:
+        """``linear`` with each channel scaled down to the brightest colour this camera records
+        below saturation (``SATURATED``) where it records it saturated, else unchanged. A
+        clipped pixel says only that the colour is at least that bright: mapping it as the
+        brightest unclipped one keeps D continuous and monotone at the clip, as inverting the
+        response does, instead of the mean of every brighter colour the field holds (rgbd_box,
+        seed 0: a clipped pixel 4.6 CIEDE2000 from the truth against 1.5 for the gain model).
+        Bisection per channel (the response is per channel), ``iterations`` halvings."""
+        with torch.no_grad():
+            low = torch.zeros_like(linear)
+            high = torch.ones_like(linear)
+            clipped = self(linear, camera, xy) >= SATURATED
+            for _ in range(iterations):
+                mid = (low + high) / 2
+                below = self(linear * mid, camera, xy) < SATURATED
+                low = torch.where(below, mid, low)
+                high = torch.where(below, high, mid)
+            return torch.where(clipped, linear * low, linear)
+
 
 class HashGridField(_Normalised):
     """Our E: (world point, world camera centre, pixel x y in [0, 1]) -> sRGB in [0, 1].
@@ -257,20 +282,42 @@ class RegisteredField(nn.Module):
         return self.field.optimiser_groups()
 
 
+def srgb_to_linear(rgb: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer function inverted (IEC 61966-2-1), in torch."""
+    rgb = rgb.clamp(0.0, 1.0)
+    return torch.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(linear: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer function, in torch; values above 1 follow the curve on (clip later)."""
+    linear = linear.clamp_min(0.0)
+    return torch.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear.clamp_min(1e-8) ** (1 / 2.4) - 0.055)
+
+
 class CaptureMapper(nn.Module):
     """D: (sRGB in [0, 1], pixel x y in [0, 1]) -> harmonised sRGB in [0, 1]; the paper's 5 -> width
-    x layers -> 3 ReLU network with a sigmoid output. With ``skip`` (ours) the network adds to
-    the input colour's logit and its last layer starts at zero, so D starts as the identity and
-    learns the correction: a deep ReLU stack learning the whole mapping stalled at 15 levels RMS
-    with greyed-out colours (rgbd_box, docs/color.md)."""
+    x layers -> 3 ReLU network. How its output changes the colour (``form``):
 
-    def __init__(self, width: int = 128, layers: int = 8, skip: bool = True):
+    - ``gain`` (ours, the default): per-channel gains in linear light, exp of the output, which
+      starts at zero, so D starts as the identity. A camera's exposure and white balance are
+      gains in linear light, so the correction D learns is smooth over the whole range, up to
+      a saturated pixel (rgbd_box: pixels the camera clipped were mapped to 4.6 CIEDE2000 from
+      the truth by the logit form, whose correction must change steeply near white).
+    - ``logit``: the output added to the input colour's logit, a sigmoid after it (the form
+      before 2026-12-06): starts as the identity too; a deep ReLU stack learning the whole
+      mapping stalled at 15 levels RMS with greyed-out colours (rgbd_box, docs/color.md).
+    - ``none``: the paper's, the whole mapping with a sigmoid output (folders written before
+      the skip)."""
+
+    def __init__(self, width: int = 128, layers: int = 8, form: str = 'gain'):
         super().__init__()
+        if form not in MAPPER_FORMS:
+            raise ValueError(f'mapper form must be one of {MAPPER_FORMS}, not {form!r}')
         sizes = [5] + [width] * layers
         self.hidden = nn.ModuleList([nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:])])
         self.rgb = nn.Linear(width, 3)
-        self.skip = skip
-        if skip:
+        self.form = form
+        if form != 'none':
             nn.init.zeros_(self.rgb.weight)
             nn.init.zeros_(self.rgb.bias)
 
@@ -279,6 +326,11 @@ class CaptureMapper(nn.Module):
         for layer in self.hidden:
             h = torch.relu(layer(h))
         out = self.rgb(h)
-        if self.skip:
+        if self.form == 'gain':
+            mapped = linear_to_srgb(srgb_to_linear(rgb) * torch.exp(out))
+            # trained on the colour as mapped (a loss on a clipped output has no gradient past
+            # white); applied, clipped to the image's range
+            return mapped if self.training else mapped.clamp(0.0, 1.0)
+        if self.form == 'logit':
             out = out + torch.logit(rgb.clamp(0.0, 1.0), eps=1e-3)
         return torch.sigmoid(out)
