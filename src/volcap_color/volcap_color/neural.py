@@ -11,7 +11,9 @@ mapping network D per camera, in torch.
   camera's own pixels to reproduce E's colour of the pixel's surface point for the reference:
   one camera (the paper), or ``mean``, the average of E over every camera position (ours: no
   camera's view-dependent highlights are favoured). x and y are the pixel centre over the
-  image size, in [0, 1], so D does not depend on the image resolution.
+  image size, in [0, 1], so D does not depend on the image resolution. Ours corrects in gains
+  per channel in linear light (``CaptureMapper``, ``mapper_form``) and aims a pixel the camera
+  recorded saturated at the reference of its clip level (``mapper_targets``).
 
 Surface points come from the cleaned depth registered to colour (``volcap_pipeline.replay.capture_views``).
 Each D also sees some pixels the cleaning removed (the room), aimed at the camera's affine map
