@@ -415,3 +415,14 @@ def test_d_in_gains_maps_a_saturated_pixel_as_the_camera_recorded_it():
     with torch.no_grad():
         white = mapper(torch.ones(1, 3), torch.full((1, 2), 0.5))[0].numpy() * 255
     assert np.abs(white - linear_to_srgb(np.full(3, 1 / 1.4)) * 255).max() < 3.0
+
+
+def test_the_torch_srgb_curves_match_colour_science():
+    """D's gain form converts with hand-written torch sRGB curves (colour-science works on
+    numpy); they must agree with ``volcap_core.color``'s, which call colour-science."""
+    from volcap_color.neural_nets import linear_to_srgb as torch_encode
+    from volcap_color.neural_nets import srgb_to_linear as torch_decode
+    from volcap_core.color import srgb_to_linear
+    v = np.linspace(0.0, 1.0, 2001)
+    assert np.allclose(torch_decode(torch.as_tensor(v)).numpy(), srgb_to_linear(v), atol=1e-7)
+    assert np.allclose(torch_encode(torch.as_tensor(v)).numpy(), linear_to_srgb(v), atol=1e-7)

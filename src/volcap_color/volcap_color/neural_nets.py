@@ -143,6 +143,19 @@ class HashGrid(nn.Module):
         return (values * weight[..., None].to(values.dtype)).sum(2).flatten(1)
 
 
+def srgb_to_linear(rgb: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer function inverted (IEC 61966-2-1), in torch (``volcap_core.color.srgb_to_linear``,
+    colour-science's, is numpy; the test checks the two agree)."""
+    rgb = rgb.clamp(0.0, 1.0)
+    return torch.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(linear: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer function, in torch; values above 1 follow the curve on (clip later)."""
+    linear = linear.clamp_min(0.0)
+    return torch.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear.clamp_min(1e-8) ** (1 / 2.4) - 0.055)
+
+
 class CameraResponse(nn.Module):
     """How each camera records linear surface colour, as a camera pipeline does: a fall-off over
     the image symmetric about its centre (vignetting: quadratic in x and y, quartic in the
@@ -160,7 +173,7 @@ class CameraResponse(nn.Module):
         self.gains = nn.Parameter(torch.ones(cameras, 3))
         self.falloff = nn.Parameter(torch.zeros(cameras, 3))        # x^2, y^2, r^4
         edges = torch.linspace(0.0, 1.0, max(knots, 1) + 1)
-        srgb = torch.where(edges <= 0.0031308, 12.92 * edges, 1.055 * edges.clamp_min(1e-8) ** (1 / 2.4) - 0.055)
+        srgb = linear_to_srgb(edges)
         steps = (srgb[1:] - srgb[:-1]).clamp_min(1e-4) * max(knots, 1)       # slope of each segment
         self.tone = nn.Parameter(torch.log(torch.expm1(steps)).repeat(cameras, 3, 1))   # softplus^-1
         if knots == 0:      # a power law per channel instead, starting at 1 / 2.2
@@ -280,18 +293,6 @@ class RegisteredField(nn.Module):
 
     def optimiser_groups(self) -> list[dict]:
         return self.field.optimiser_groups()
-
-
-def srgb_to_linear(rgb: torch.Tensor) -> torch.Tensor:
-    """The sRGB transfer function inverted (IEC 61966-2-1), in torch."""
-    rgb = rgb.clamp(0.0, 1.0)
-    return torch.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(linear: torch.Tensor) -> torch.Tensor:
-    """The sRGB transfer function, in torch; values above 1 follow the curve on (clip later)."""
-    linear = linear.clamp_min(0.0)
-    return torch.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear.clamp_min(1e-8) ** (1 / 2.4) - 0.055)
 
 
 class CaptureMapper(nn.Module):
