@@ -5,7 +5,8 @@
   the neural method (networks D and their live region LUTs) against the true colours
   (CIEDE2000, one 3x3 shared), pairwise against the true colours' floor, saturated chroma
   against the truth's, beside the chart-free gain model and the paper's baselines;
-- the floor of E's held-out RMS there: E fitted to one view alone (``--single-view-floor``);
+- the floor of E's held-out RMS there: E fitted to one view alone (``--single-view-floor``),
+  and beside it the same held-out pixels predicted from their image neighbours (no field);
 - the synthetic studio (8 cameras, seeds 7 and 0; rendered and calibrated from its board
   views, so the reference is anchored to the chart): ``volcap harmonise`` with the demo's
   short settings, then ``volcap eval color`` on frame sets it never saw: neural against
@@ -81,6 +82,37 @@ def single_view_floor(seed: int, out: Path, cfg: HarmoniseConfig, camera: int = 
     e = harm.report['field_error']
     return {'seed': seed, 'camera': view.name, 'epochs': epochs, 'rms_levels': e['rms_levels'],
             'median_levels': e['median_levels'], 'rms_best_95_levels': e['rms_best_95_levels']}
+
+
+def image_floor(seed: int, cfg: HarmoniseConfig, camera: int = 2) -> dict:
+    """What the image itself says about the same held-out pixels as ``single_view_floor``: each
+    predicted by the mean of its four neighbours that are not held out, scored as E is
+    (``neural.field_error``). No field: the bound that the texture and the cameras' noise set on
+    predicting a pixel from the pixels around it."""
+    from volcap_color.neural import _held_out_split
+    from volcap_color.neural_samples import view_samples
+    from volcap_eval.color import distorted_frame_views
+    views, _ = distorted_frame_views(SHARED / 'rgbd_box', SHARED / 'rgbd_box' / 'intrinsics.K.txt', 8, seed)
+    view = views[camera]
+    h, w = view.depth.shape
+    pixels = view_samples(view, None, np.random.default_rng(seed), 0)
+    held, _ = _held_out_split(pixels, [view.name], replace(cfg, seed=seed).seed)
+    x = np.rint(pixels.xy[held, 0] * w - 0.5).astype(int)
+    y = np.rint(pixels.xy[held, 1] * h - 0.5).astype(int)
+    known = np.ones((h + 2, w + 2), bool)
+    known[[0, -1]] = known[:, [0, -1]] = False       # a border of unknown pixels
+    known[y + 1, x + 1] = False
+    image = np.zeros((h + 2, w + 2, 3), np.float64)
+    image[1:-1, 1:-1] = view.color
+    total, count = np.zeros((len(held), 3)), np.zeros((len(held), 1))
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        k = known[y + 1 + dy, x + 1 + dx][:, None]
+        total += k * image[y + 1 + dy, x + 1 + dx]
+        count += k
+    sq = (total / np.maximum(count, 1) - view.color[y, x]) ** 2
+    pixel = np.sqrt(sq.mean(1))
+    return {'seed': seed, 'camera': view.name, 'rms_levels': float(np.sqrt(sq.mean())),
+            'median_levels': float(np.median(pixel)), 'pixels': len(held)}
 
 
 def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
@@ -172,6 +204,10 @@ def main() -> int:
         print(f"rgbd_box seed {seed}, E on {r['camera']} alone ({r['epochs']} epochs): held-out RMS "
               f"{r['rms_levels']:.2f} levels (median {r['median_levels']:.1f}, 95 % best "
               f"{r['rms_best_95_levels']:.1f}): the floor the 8 views' E is held to", flush=True)
+        r = image_floor(seed, cfg)
+        result['single_view_floor'][-1]['image_floor'] = r
+        print(f"rgbd_box seed {seed}, the same held-out pixels of {r['camera']} from their 4 image neighbours: RMS "
+              f"{r['rms_levels']:.2f} levels (median {r['median_levels']:.1f}): what the image allows", flush=True)
     for seed in args.studio_seeds:
         r = studio(seed, out, cfg)
         result['studio'].append(r)
