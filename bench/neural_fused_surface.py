@@ -51,10 +51,9 @@ def fused_views(views: list[View]) -> tuple[list[View], list[dict]]:
         K, extrinsic = o3c.Tensor(v.camera.K), o3c.Tensor(np.linalg.inv(v.T_world_camera))
         blocks = grid.compute_unique_block_coordinates(depth, K, extrinsic, 1.0, 3.0, TRUNC_VOXELS)
         grid.integrate(blocks, depth, K, extrinsic, 1.0, 3.0, TRUNC_VOXELS)
-        posed.append((v, depth, K, extrinsic))
+        posed.append((v, blocks, K, extrinsic))
     out, stats = [], []
-    for v, depth, K, extrinsic in posed:
-        blocks = grid.compute_unique_block_coordinates(depth, K, extrinsic, 1.0, 3.0, TRUNC_VOXELS)
+    for v, blocks, K, extrinsic in posed:
         cast = grid.ray_cast(blocks, K, extrinsic, v.camera.width, v.camera.height, ['depth'], 1.0, 0.1, 3.0, 1.0,
                              TRUNC_VOXELS, 8)
         surface = cast['depth'].numpy()[..., 0].astype(np.float32)
@@ -83,6 +82,16 @@ def main():
         return default_samples(fused, cameras, total, seed)
 
     rows = []
+    try:
+        measure(args, out, rows, stats, on_fused_surface, default_samples)
+    finally:
+        neural.training_samples = default_samples
+    path = out / 'neural_fused_surface.json'
+    path.write_text(json.dumps({'commit': commit(), 'rows': rows}, indent=2, default=float))
+    print(f'wrote {path}')
+
+
+def measure(args, out: Path, rows: list, stats: dict, on_fused_surface, default_samples) -> None:
     for seed in args.seeds:
         for name in ('default (each view\'s depth)', 'fused surface'):
             neural.training_samples = on_fused_surface if name == 'fused surface' else default_samples
@@ -105,10 +114,6 @@ def main():
                   f"pairwise {row['pairwise']:.2f} (floor {row['floor']:.2f}), chroma {row['chroma']:.1f} "
                   f"(truth {row['chroma_truth']:.1f}), E held-out {row['field_held_out_rms']:.2f} levels (median "
                   f"{row['field_held_out_median']:.1f}), harmonise {row['harmonise_seconds']:.0f} s{kept}", flush=True)
-    neural.training_samples = default_samples
-    path = out / 'neural_fused_surface.json'
-    path.write_text(json.dumps({'commit': commit(), 'rows': rows}, indent=2, default=float))
-    print(f'wrote {path}')
 
 
 if __name__ == '__main__':

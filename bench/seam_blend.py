@@ -33,7 +33,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from stability import commit, studio, truth_frame  # noqa: E402 (bench/ is on the path)
@@ -43,22 +42,14 @@ from volcap_core.poses import invert, matrix_from_list, transform_points  # noqa
 from volcap_core.sampling import sample_bilinear  # noqa: E402
 from volcap_eval.fusion import true_color_image  # noqa: E402
 from volcap_filter.pipeline import DepthFilterConfig  # noqa: E402
-from volcap_fusion.seams import SeamView, seam_score  # noqa: E402
+from volcap_fusion.seams import SeamView, seam_score, vertex_normals  # noqa: E402
 from volcap_fusion.stability import sequence_stability  # noqa: E402
 from volcap_fusion.tsdf import CameraView, FusionConfig, TsdfFusion  # noqa: E402
 from volcap_pipeline.replay import cleaned_frame_sets  # noqa: E402
 from volcap_studio.session import GroundTruth  # noqa: E402
 
 STEP_MM = 20.0      # a depth step that separates surfaces (the fusion's edge_tolerance)
-
-
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(N, 3) unit vertex normals (area-weighted face normals), Open3D's."""
-    mesh = o3d.t.geometry.TriangleMesh()
-    mesh.vertex.positions = o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32))
-    mesh.triangle.indices = o3d.core.Tensor(np.ascontiguousarray(triangles, np.int32))
-    mesh.compute_vertex_normals(normalized=True)
-    return mesh.vertex.normals.numpy()
+EDGE_LIMIT_PX = 16.0    # the widest ramp of the variants
 
 
 def edge_distance(depth_mm: np.ndarray, step_mm: float, limit_px: float) -> tuple[np.ndarray, tuple[int, int]]:
@@ -79,18 +70,18 @@ def edge_distance(depth_mm: np.ndarray, step_mm: float, limit_px: float) -> tupl
     return np.minimum(dist, np.float32(limit_px)), (x0, y0)
 
 
-def blend_colors(vertices: np.ndarray, triangles: np.ndarray, tsdf_colors: np.ndarray, views, trunc_m: float,
-                 edge_px: float, step_mm: float, tsdf_weight: float, power: float = 2.0) -> np.ndarray:
+def blend_colors(model, views, edge_maps: list, normals: np.ndarray, trunc_m: float, edge_px: float,
+                 tsdf_weight: float, power: float = 2.0) -> np.ndarray:
     """(N, 3) uint8 vertex colours blended from ``views`` (``tsdf.CameraView``s, posed in the
     vertices' frame) with the weights of the module docstring."""
+    vertices, tsdf_colors = model.vertices, model.colors
     n = len(vertices)
     if n == 0:
         return tsdf_colors
-    normals = vertex_normals(vertices, triangles)
     total = np.zeros(n, np.float32)
     acc = np.zeros((n, 3), np.float32)
     v = vertices.astype(np.float32)
-    for view in views:
+    for view, (dist, (x0, y0)) in zip(views, edge_maps):
         T = invert(np.asarray(view.T_world_camera, np.float64)).astype(np.float32)
         local = v @ T[:3, :3].T + T[:3, 3]
         z = local[:, 2]
@@ -107,8 +98,7 @@ def blend_colors(vertices: np.ndarray, triangles: np.ndarray, tsdf_colors: np.nd
         idx, dpx, u, w = idx[visible], dpx[visible], u[visible], w[visible]
         if not len(idx):
             continue
-        dist, (x0, y0) = edge_distance(view.depth_mm, step_mm, edge_px)
-        edge = dist[w - y0, u - x0] / np.float32(edge_px)
+        edge = np.minimum(dist[w - y0, u - x0], np.float32(edge_px)) / np.float32(edge_px)
         ray = local[idx] / np.linalg.norm(local[idx], axis=1, keepdims=True)
         normal = normals[idx] @ T[:3, :3].T
         cos = np.abs(np.sum(normal * ray, axis=1))
@@ -150,15 +140,19 @@ def run_studio(bag: Path, colours: str) -> dict:
             views.append(CameraView(cam, depth_to_millimetres(c.result.depth), c.cleaner.output_model, color,
                                     c.frame.color_model, T_sw @ gt.T_world_color(cam)))
         model = fusion.fuse(views, on_floor=True)
+        t0 = time.perf_counter()
+        # shared by every variant: the normals and each camera's distance to its depth edges
+        normals = vertex_normals(model) if len(model.triangles) else np.zeros((0, 3))
+        edge_maps = [edge_distance(v.depth_mm, STEP_MM, EDGE_LIMIT_PX) for v in views]
+        shared_ms = (time.perf_counter() - t0) * 1e3
         seam_views = [SeamView(v.name, v.color, v.color_model, v.T_world_camera) for v in views]
         for name, variant in VARIANTS.items():
             recoloured = copy.copy(model)
             if variant is not None:
                 t0 = time.perf_counter()
-                recoloured.colors = blend_colors(model.vertices, model.triangles, model.colors, views,
-                                                 cfg.trunc_voxels * cfg.voxel_size, variant[1], STEP_MM, variant[2],
-                                                 variant[0])
-                blend_ms.append((time.perf_counter() - t0) * 1e3)
+                recoloured.colors = blend_colors(model, views, edge_maps, normals, cfg.trunc_voxels * cfg.voxel_size,
+                                                 variant[1], variant[2], variant[0])
+                blend_ms.append(shared_ms + (time.perf_counter() - t0) * 1e3)
             if len(stamps) > 2:         # the filter's first two sets are its average filling
                 s = seam_score(recoloured, seam_views)
                 seams[name].append((s['model_step_seam_de'], s['model_step_other_de'], s['seam_de']))
