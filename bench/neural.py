@@ -15,7 +15,10 @@
   pixel with torch.
 
     python bench/neural.py [--out bench_out/neural] [--frames-seeds 0 1 2] [--studio-seeds 7 0]
-        [--field hashgrid|paper] [--single-view-floor 0]
+        [--field hashgrid|paper] [--surface fused|views] [--single-view-floor 0]
+
+``--surface``: where E's and D's training pixels lie (``volcap harmonise --surface``; fused, the
+default, or each view's own depth); ``bench/neural_fused_surface.py`` runs both side by side.
 
 Each run's full report is written beside ``bench_neural.json``; figures: the colour methods and
 images of each run (``figures/``).
@@ -30,10 +33,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from color_stage import median_ms  # bench/ is on the path when run as a script
+from stability import commit
 
 from volcap_color.apply import ImageCorrector, RegionLut
 from volcap_color.config import HarmoniseConfig
 from volcap_core import transport
+from volcap_pipeline.harmonise import SurfaceConfig
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'data'
 BASELINES = ('reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon')
@@ -45,12 +50,23 @@ def _row(rows: dict, name: str) -> dict:
                                   'chroma_before', 'chroma_after')}
 
 
-def real_texture(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
+def surface_summary(manifest: dict) -> dict:
+    """Where the training pixels lay (``volcap_pipeline.harmonise``): the source, the share of
+    the views' pixels kept and their median distance from the fused surface."""
+    surface = manifest.get('surface') or {}
+    views = [v for s in surface.get('frame_sets', []) for v in s.get('views', [])]
+    apart = [v['median_difference_mm'] for v in views if v.get('median_difference_mm') is not None]
+    return {'source': surface.get('source'), 'kept': float(np.mean([v['kept'] for v in views])) if views else None,
+            'median_difference_mm': float(np.median(apart)) if apart else None,
+            'seconds': float(sum(s.get('seconds', 0.0) for s in surface.get('frame_sets', [])))}
+
+
+def real_texture(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = SurfaceConfig()) -> dict:
     from volcap_eval.color import ColorEvalConfig, evaluate_frames_color
     models = out / f'frames_seed{seed}'
     t0 = time.perf_counter()
     report, _ = evaluate_frames_color(SHARED / 'rgbd_box', count=8, seed=seed, cfg=ColorEvalConfig(),
-                                      progress=False, harmonise=(models, replace(cfg, seed=seed)))
+                                      progress=False, harmonise=(models, replace(cfg, seed=seed)), surface=surface)
     wall = time.perf_counter() - t0
     (out / f'frames_seed{seed}.json').write_text(json.dumps(report, indent=1, default=float))
     manifest = json.loads((models / 'manifest.json').read_text())
@@ -63,7 +79,7 @@ def real_texture(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
             'field_held_out_rms_best_95': manifest['field_error']['rms_best_95_levels'],
             'grid_cell_mm': manifest['grid_cell_mm'], 'registration': manifest['registration'],
             'export_error_mean_levels': float(np.mean([e['mean_levels'] for e in manifest['export_error'].values()])),
-            'texture': manifest['texture'],
+            'texture': manifest['texture'], 'surface': surface_summary(manifest),
             'methods': {n: _row(rows, n) for n in ('original', *BASELINES, 'volcap_chart_free', 'neural',
                                                    'neural_live', 'true_colours')}}
 
@@ -115,7 +131,7 @@ def image_floor(seed: int, camera: int = 2) -> dict:
             'median_levels': float(np.median(pixel)), 'pixels': len(held)}
 
 
-def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
+def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = SurfaceConfig()) -> dict:
     from volcap_bringup.demo_cli import DemoConfig
     from volcap_calib.run import CalibrateConfig
     from volcap_calib.run import run as calibrate
@@ -124,6 +140,7 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
     from volcap_core.calibration import Calibration
     from volcap_eval.color import ColorEvalConfig
     from volcap_eval.color import run as evaluate_color
+    from volcap_pipeline import harmonise
     from volcap_pipeline.replay import capture_views
     from volcap_studio.session import synthesize
     from volcap_studio.studio import SynthConfig
@@ -138,8 +155,8 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
     sets = capture_views(bag, rig, demo.colour_frames, False)
     models = out / f'studio_seed{seed}.neural'
     short = replace(cfg, seed=seed, **{k: v for k, v in demo.harmonise().items() if k != 'seed'})
-    trained = neural.run(sets, cameras_in(sets, rig), short, models, progress=False, views_seconds=0.0,
-                         chart_models=neural.chart_models(rig))
+    trained = harmonise.run(sets, cameras_in(sets, rig), short, models, surface, progress=False, views_seconds=0.0,
+                            chart_models=neural.chart_models(rig))
     harmonise_s = time.perf_counter() - t0
     report = evaluate_color(bag, calibration, ColorEvalConfig(frames=demo.colour_frames), neural=models,
                             progress=False)
@@ -147,6 +164,7 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig) -> dict:
     rows = report['methods']
     return {'seed': seed, 'harmonise_seconds': harmonise_s, 'anchor': trained.manifest['anchor'],
             'field_held_out_rms': trained.manifest['field_error']['rms_levels'], 'texture': trained.manifest['texture'],
+            'surface': surface_summary(trained.manifest),
             'methods': {n: _row(rows, n) for n in rows}}
 
 
@@ -168,12 +186,22 @@ def _f(v, d=2):
     return '-' if v is None else f'{v:.{d}f}'
 
 
+def _on_surface(r: dict) -> str:
+    s = r['surface']
+    if s['kept'] is None:
+        return f"; pixels on the {s['source']} depth"
+    return (f"; pixels on the {s['source']} surface: {s['kept']:.0%} kept, the views {s['median_difference_mm']:.1f} mm "
+            f"from it, {s['seconds']:.0f} s")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--out', default='bench_out/neural')
     p.add_argument('--frames-seeds', type=int, nargs='*', default=[0, 1, 2])
     p.add_argument('--studio-seeds', type=int, nargs='*', default=[7, 0])
     p.add_argument('--field', default='hashgrid', choices=('hashgrid', 'paper'))
+    p.add_argument('--surface', default=SurfaceConfig().surface, choices=('fused', 'views'),
+                   help='where the training pixels lie (volcap harmonise --surface)')
     p.add_argument('--single-view-floor', type=int, nargs='*', default=[0], metavar='SEED',
                    help='rgbd_box seeds on which to fit E to one view alone, the floor of its held-out RMS')
     args = p.parse_args()
@@ -181,11 +209,13 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cfg = HarmoniseConfig(field=args.field)
+    surface = SurfaceConfig(surface=args.surface)
     device = 'cuda' if torch.cuda.is_available() else 'cpu'
-    result = {'device': device, 'threads': torch.get_num_threads(), 'field': args.field, 'real_texture': [],
+    result = {'device': device, 'threads': torch.get_num_threads(), 'field': args.field, 'surface': args.surface,
+              'commit': commit(), 'real_texture': [],
               'studio': []}
     for seed in args.frames_seeds:
-        r = real_texture(seed, out, cfg)
+        r = real_texture(seed, out, cfg, surface)
         result['real_texture'].append(r)
         m = r['methods']
         print(f"rgbd_box seed {seed}: harmonise {r['harmonise_seconds']:.0f} s (E {r['field_seconds']:.0f} s, "
@@ -196,7 +226,7 @@ def main() -> int:
               f"{_f(m['volcap_chart_free']['truth_de2000'])}, untouched {_f(m['original']['truth_de2000'])}); "
               f"pairwise {_f(m['neural']['de2000_mean'])} (floor {_f(m['true_colours']['de2000_mean'])}, target <= "
               f"floor + 0.3); saturated chroma {_f(m['neural']['chroma_after'], 1)} vs truth's "
-              f"{_f(m['true_colours']['chroma_after'], 1)} (target within 10 %)", flush=True)
+              f"{_f(m['true_colours']['chroma_after'], 1)} (target within 10 %){_on_surface(r)}", flush=True)
     result['single_view_floor'] = []
     for seed in args.single_view_floor:
         r = single_view_floor(seed, out, cfg)
@@ -209,7 +239,7 @@ def main() -> int:
         print(f"rgbd_box seed {seed}, the same held-out pixels of {r['camera']} from their 4 image neighbours: RMS "
               f"{r['rms_levels']:.2f} levels (median {r['median_levels']:.1f}): what the image allows", flush=True)
     for seed in args.studio_seeds:
-        r = studio(seed, out, cfg)
+        r = studio(seed, out, cfg, surface)
         result['studio'].append(r)
         m = r['methods']
         others = {n: v for n, v in m.items() if n not in ('neural', 'neural_live', 'true_colours')}
@@ -218,8 +248,8 @@ def main() -> int:
         print(f"studio seed {seed}: harmonise (demo's short run) {r['harmonise_seconds']:.0f} s (target <= 180), "
               f"anchor {r['anchor']}; neural pairwise {_f(m['neural']['de2000_mean'])} vs best other "
               f"{best_pair[0]:.2f} ({best_pair[1]}); truth {_f(m['neural']['truth_de2000'])} vs best other "
-              f"{best_truth[0]:.2f} ({best_truth[1]}); untouched truth {_f(m['original']['truth_de2000'])}",
-              flush=True)
+              f"{best_truth[0]:.2f} ({best_truth[1]}); untouched truth {_f(m['original']['truth_de2000'])}"
+              f"{_on_surface(r)}", flush=True)
     if args.frames_seeds:
         result['live'] = live_form(out / f'frames_seed{args.frames_seeds[0]}')
         print(f"live form on 1280x720: region LUT {result['live']['region_lut_ms']:.1f} ms, torch D on every pixel "

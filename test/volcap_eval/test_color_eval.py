@@ -99,6 +99,11 @@ def test_harmonise_and_eval_neural_end_to_end(studio_bag, tmp_path, gt_calibrati
     assert set(manifest['export_error']) == set(cams) and manifest['reference'] == 'cam1'
     assert all((models / f'{c}.lut.npz').exists() and (models / f'{c}.mapper.pt').exists() for c in cams)
     assert (models / 'training.png').stat().st_size > 10_000 and not (models / 'checkpoint.pt').exists()
+    # E and D trained on the surface the cameras' cleaned depth fuses to (the default)
+    surface = manifest['surface']
+    assert surface['source'] == 'fused' and len(surface['frame_sets']) == 1
+    assert {v['view'] for v in surface['frame_sets'][0]['views']} == set(cams)
+    assert min(v['kept'] for v in surface['frame_sets'][0]['views']) > 0.8
     report_path = tmp_path / 'colour.json'
     assert main(['eval', 'colour', str(studio_bag), '--calibration', str(calibration), '--frames', '2',
                  '--no-chart', '--neural', str(models), '--json', str(report_path), '--figures',

@@ -40,18 +40,26 @@ def harmonise_config(args, **fixed):
     return config_from_args(HarmoniseConfig, args, **fixed)
 
 
+def surface_config(args):
+    """Where the training pixels lie, as given on the command line (``harmonise_arguments``)."""
+    from volcap_pipeline.harmonise import SurfaceConfig
+    return config_from_args(SurfaceConfig, args)
+
+
 def cmd_harmonise(args) -> int:
     from volcap_color import neural
     from volcap_color.correspondence import cameras_in
     from volcap_core.calibration import Calibration
+    from volcap_pipeline import harmonise
     from volcap_pipeline.replay import capture_views
-    cfg = harmonise_config(args)
+    cfg, surface = harmonise_config(args), surface_config(args)
     calibration = Calibration.load(args.calibration)
     t0 = time.perf_counter()
     sets = capture_views(args.bag, calibration, config_from_args(CaptureSetsConfig, args).frames, not args.quiet)
-    report = neural.run(sets, cameras_in(sets, calibration), cfg, args.out, args.train_sets, args.resume,
-                        not args.quiet, {'bag': str(args.bag), 'calibration': str(args.calibration)},
-                        time.perf_counter() - t0, neural.chart_models(calibration))
+    report = harmonise.run(sets, cameras_in(sets, calibration), cfg, args.out, surface, train_sets=args.train_sets,
+                           resume=args.resume, progress=not args.quiet,
+                           sources={'bag': str(args.bag), 'calibration': str(args.calibration)},
+                           views_seconds=time.perf_counter() - t0, chart_models=neural.chart_models(calibration))
     print('\n'.join(report.lines()))
     return 0
 
@@ -65,10 +73,13 @@ HARMONISE_OPTIONS = ('field', 'points', 'field_epochs', 'field_batch', 'field_lr
 
 
 def harmonise_arguments(h, seed: bool = True) -> None:
-    """The training settings of ``volcap harmonise`` (HarmoniseConfig's own declarations), shared
-    by ``eval color-frames`` (whose own ``--seed`` seeds the training too: ``seed=False``)."""
+    """The training settings of ``volcap harmonise`` (HarmoniseConfig's and SurfaceConfig's own
+    declarations), shared by ``eval color-frames`` (whose own ``--seed`` seeds the training too:
+    ``seed=False``)."""
     from volcap_color.config import HarmoniseConfig
+    from volcap_pipeline.harmonise import SurfaceConfig
     add_arguments(h, HarmoniseConfig, HARMONISE_OPTIONS, exclude=() if seed else ('seed',))
+    add_arguments(h, SurfaceConfig)
 
 
 def common_arguments(p) -> None:

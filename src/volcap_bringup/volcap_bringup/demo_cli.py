@@ -147,6 +147,7 @@ def _colour_steps(demo: DemoConfig, bag: Path, calibration: Path, out: Path) -> 
     from volcap_eval.color import ColorEvalConfig
     from volcap_eval.color import format_report as format_color
     from volcap_eval.color import run as evaluate_color
+    from volcap_pipeline import harmonise
     from volcap_pipeline.replay import capture_views
 
     models = out / 'neural'
@@ -154,9 +155,9 @@ def _colour_steps(demo: DemoConfig, bag: Path, calibration: Path, out: Path) -> 
     t0 = time.perf_counter()
     rig_calibration = Calibration.load(calibration)
     sets = capture_views(bag, rig_calibration, demo.colour_frames)
-    report = neural.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**demo.harmonise()),
-                        models, sources={'bag': str(bag), 'calibration': str(calibration)},
-                        views_seconds=time.perf_counter() - t0, chart_models=neural.chart_models(rig_calibration))
+    report = harmonise.run(sets, cameras_in(sets, rig_calibration), HarmoniseConfig(**demo.harmonise()), models,
+                           sources={'bag': str(bag), 'calibration': str(calibration)},
+                           views_seconds=time.perf_counter() - t0, chart_models=neural.chart_models(rig_calibration))
     print('\n'.join(report.lines()))
 
     print(f'[5/7] colour: every method on the same correspondences: volcap eval colour -> {out / "colour.json"}, '

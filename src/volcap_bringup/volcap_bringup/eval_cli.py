@@ -13,7 +13,7 @@ from volcap_core.files import write_json
 from volcap_core.settings import add_arguments, config_from_args
 from volcap_eval.config import ColorEvalConfig
 
-from .color_cli import _correspondence, common_arguments, harmonise_arguments, harmonise_config
+from .color_cli import _correspondence, common_arguments, harmonise_arguments, harmonise_config, surface_config
 
 
 def cmd_eval_depth(args) -> int:
@@ -88,7 +88,7 @@ def cmd_eval_color_frames(args) -> int:
     harmonise = (args.harmonise, harmonise_config(args, seed=args.seed)) if args.harmonise else None
     report, extras = evaluate_frames_color(args.folder, args.intrinsics, args.views, args.seed,
                                            config_from_args(ColorEvalConfig, args), not args.quiet,
-                                           harmonise)
+                                           harmonise, surface_config(args))
     if args.figures:
         report['figures'] = [str(p) for p in write_color_figures(args.figures, report, extras['views'],
                                                                  extras['mappings'], extras['models'])]

@@ -64,6 +64,7 @@ from volcap_color.model_choice import SATURATED_CHROMA, ModelChoice, choose_char
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.color import ColorModel, delta_e2000, linear_to_lab, srgb_to_lab, srgb_to_linear
 from volcap_core.errors import BadInput
+from volcap_pipeline.harmonise import SurfaceConfig
 from volcap_pipeline.replay import capture_views
 from volcap_studio.render import ColorResponse
 from volcap_studio.session import GroundTruth
@@ -343,13 +344,14 @@ def distorted_frame_views(folder: str | Path, intrinsics: str | Path, count: int
 
 def evaluate_frames_color(folder: str | Path, intrinsics: str | Path | None = None, count: int = 8, seed: int = 0,
                           cfg: ColorEvalConfig = ColorEvalConfig(), progress: bool = True,
-                          harmonise: tuple[str | Path, HarmoniseConfig] | None = None) -> tuple[dict, dict]:
+                          harmonise: tuple[str | Path, HarmoniseConfig] | None = None,
+                          surface: SurfaceConfig = SurfaceConfig()) -> tuple[dict, dict]:
     """`volcap eval color-frames`: the colour methods on real texture. One frame set of
     ``count`` distorted real views (``distorted_frame_views``); every pair's correspondences
     are split at random, one half fitted, the other scored; the truth is the undistorted image.
     With ``harmonise`` (folder, settings) the neural method is trained on the views too (every
-    pixel with depth, as `volcap harmonise --train-sets all`) and scored as ``neural`` and
-    ``neural_live``."""
+    pixel with depth, as `volcap harmonise --train-sets all`, its pixels on ``surface``) and
+    scored as ``neural`` and ``neural_live``."""
     intrinsics = intrinsics or Path(folder) / 'intrinsics.K.txt'
     views, responses = distorted_frame_views(folder, intrinsics, count, seed)
     cameras = [v.name for v in views]
@@ -362,10 +364,10 @@ def evaluate_frames_color(folder: str | Path, intrinsics: str | Path | None = No
     sizes = {v.name: (v.camera.width, v.camera.height) for v in views}
     neural_info, luts = None, {}
     if harmonise is not None:
-        from volcap_color import neural
+        from volcap_pipeline.harmonise import run as harmonise_views
         out_dir, harmonise_cfg = harmonise
-        trained = neural.run([views], cameras, harmonise_cfg, out_dir, 'all', progress=progress,
-                             sources={'folder': str(folder), 'seed': seed})
+        trained = harmonise_views([views], cameras, harmonise_cfg, out_dir, surface, train_sets='all',
+                                  progress=progress, sources={'folder': str(folder), 'seed': seed})
         extra, _, luts = neural_mappings(out_dir, views, cameras)
         mappings.update(extra)
         neural_info = {'models': str(out_dir), 'trained_on': [0], 'reference': harmonise_cfg.reference,

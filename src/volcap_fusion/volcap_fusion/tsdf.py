@@ -92,6 +92,21 @@ def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geome
     return scene
 
 
+def surface_depth(scene: o3d.t.geometry.RaycastingScene, camera: CameraModel, T_world_camera: np.ndarray
+                  ) -> np.ndarray:
+    """(H, W) float32 depth (m, along the optical axis) of the scene's nearest surface through
+    every pixel of ``camera`` at ``T_world_camera`` (a pose in the scene's frame), 0 where a
+    ray meets nothing. The rays are the camera's own (``pixel_rays``, lens distortion
+    included), so the depth lies on that camera's pixel grid."""
+    T = np.asarray(T_world_camera, np.float64)
+    rays = camera.pixel_rays().reshape(-1, 3)          # z = 1: a hit's distance is its depth
+    cast = np.empty((len(rays), 6), np.float32)
+    cast[:, :3] = T[:3, 3]
+    cast[:, 3:] = rays @ T[:3, :3].T
+    t = scene.cast_rays(o3c.Tensor(cast))['t_hit'].numpy()
+    return np.where(np.isfinite(t), t, 0.0).astype(np.float32).reshape(camera.height, camera.width)
+
+
 def pinhole(model: CameraModel) -> CameraModel:
     """The undistorted pinhole camera with the same size and intrinsics."""
     return CameraModel(model.width, model.height, model.fx, model.fy, model.cx, model.cy)
