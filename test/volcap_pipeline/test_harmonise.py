@@ -129,6 +129,11 @@ def test_the_harmonisation_trains_on_the_fused_surface(tmp_path):
             d[:, d.shape[1] // 2:] = 0
             out.append(View(v.name, v.color, d, v.camera, v.T_world_camera))
         return out, {'source': 'left half', 'views': []}
+    left_half.settings = {'half': 'left'}
     half = neural.run(sets, cameras, replace(TINY, points=None), tmp_path / 'half', progress=False, surface=left_half)
     assert half.manifest['surface']['source'] == 'left half'
     assert half.manifest['field_samples'] < 0.7 * own.manifest['field_samples']
+    # networks trained on one surface are not resumed on another
+    with pytest.raises(BadInput, match='other settings'):
+        run(sets, cameras, replace(TINY, points=None), tmp_path / 'fused', SurfaceConfig(surface='views'),
+            progress=False, resume=True)

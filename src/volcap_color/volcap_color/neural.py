@@ -36,7 +36,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -63,11 +63,14 @@ HELD_OUT = 20_000        # at most this many pixels per camera are kept from tra
 
 MIN_CELL_MM = 1.0        # finer cells than this cost table size and time for texture no camera here resolves
 
-# The views of one training frame set -> the same views with each pixel's depth replaced by the
-# surface E and D are to sample it on (0: leave the pixel out), and what to report of it. The
-# pipeline composes one from the fusion (``volcap_pipeline.harmonise.FusedSurface``): this stage
-# may not import the fusion itself.
-Surface = Callable[[list[View]], tuple[list[View], dict]]
+class Surface(Protocol):
+    """Where a frame set's training pixels lie: the views -> the same views with each pixel's
+    depth replaced by the surface E and D are to sample it on (0: leave the pixel out), and what
+    to report of it. The pipeline composes one from the fusion
+    (``volcap_pipeline.harmonise.FusedSurface``): this stage may not import the fusion itself."""
+    settings: dict          # what decides the surface: a run resumes only with the same
+
+    def __call__(self, views: list[View]) -> tuple[list[View], dict]: ...
 
 
 def pixel_footprint_mm(views: list[View]) -> float:
@@ -140,12 +143,14 @@ def _with_gamut(field_model: HashGridField, reference: Reference, mine: SurfaceS
             torch.cat([target, reference.from_surface_color(field_model.response.unclipped(colors, index, where))]))
 
 
-def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.device) -> dict | None:
-    """With ``resume``, a network an interrupted run already finished (same settings), else None."""
+def _finished(path: Path, cfg: HarmoniseConfig, resume: bool, device: torch.device, surface: dict | None
+              ) -> dict | None:
+    """With ``resume``, a network an interrupted run already finished (same settings and
+    surface), else None."""
     if not resume or not path.exists():
         return None
     saved = torch.load(path, map_location=device, weights_only=False)
-    if saved.get('config') != asdict(cfg) or 'result' not in saved:
+    if saved.get('config') != asdict(cfg) or saved.get('surface') != surface or 'result' not in saved:
         raise BadInput(f'--resume: {path} was trained with other settings; use a new --out or leave out --resume')
     return saved
 
@@ -258,7 +263,8 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     t = lambda a: torch.as_tensor(a, device=device)
     cell_mm = cfg.grid_cell_mm or pixel_footprint_mm([v for views in train_sets for v in views if v.name in cameras])
     field_model = _field_for(samples, cfg, cell_mm).to(device)
-    done = _finished(out_dir / FIELD_FILE, cfg, resume, device)
+    on = None if surface is None else dict(surface.settings)        # what the networks are trained on
+    done = _finished(out_dir / FIELD_FILE, cfg, resume, device, on)
     if done:
         field_model.load_state_dict(done['state'])
         field_result = TrainResult(**done['result'])
@@ -269,9 +275,10 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
                              epochs=cfg.field_setting('field_epochs'), batch=cfg.field_setting('field_batch'),
                              lr=cfg.field_setting('field_lr'), lr_final=cfg.field_setting('field_lr_final'),
                              seed=cfg.seed, bf16=bf16, label='E (colour field)', checkpoint=checkpoint,
-                             settings=asdict(cfg), progress=progress,
+                             settings={**asdict(cfg), 'surface': on}, progress=progress,
                              weights=edge_weights(samples, cfg.edge_levels, device), robust=cfg.robust_levels / 255.0)
-        _save_atomic({'state': field_model.state_dict(), 'config': asdict(cfg), 'result': asdict(field_result)},
+        _save_atomic({'state': field_model.state_dict(), 'config': asdict(cfg), 'surface': on,
+                      'result': asdict(field_result)},
                      out_dir / FIELD_FILE)
     field_model.eval()
     # the views' corrections learnt with E, applied once: from here on every surface point of
@@ -291,7 +298,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         mine = pixels.select(rest[pixels.camera[rest] == i][:cfg.mapper_points])
         torch.manual_seed(cfg.seed + 1 + i)
         mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, cfg.mapper_form).to(device)
-        done = _finished(out_dir / f'{cam}.mapper.pt', cfg, resume, device)
+        done = _finished(out_dir / f'{cam}.mapper.pt', cfg, resume, device, on)
         if done:
             mapper.load_state_dict(done['state'])
             mapper_results[cam] = TrainResult(**done['result'])
@@ -306,8 +313,9 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
             mapper_results[cam] = train(mapper, (t(rgb), t(xy)), target, epochs=cfg.mapper_epochs,
                                         batch=cfg.mapper_batch, lr=cfg.mapper_lr, lr_final=cfg.mapper_lr_final,
                                         seed=cfg.seed + 1 + i, bf16=bf16, label=f'D {cam}', checkpoint=checkpoint,
-                                        settings=asdict(cfg), progress=progress)
-            _save_atomic({'state': mapper.state_dict(), 'config': asdict(cfg), 'result': asdict(mapper_results[cam])},
+                                        settings={**asdict(cfg), 'surface': on}, progress=progress)
+            _save_atomic({'state': mapper.state_dict(), 'config': asdict(cfg), 'surface': on,
+                          'result': asdict(mapper_results[cam])},
                          out_dir / f'{cam}.mapper.pt')
         mapper.eval()
         mappers[cam] = mapper

@@ -20,7 +20,7 @@ fusion, so this composition lives in the pipeline.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -57,6 +57,7 @@ class FusedSurface:
     def __init__(self, cfg: SurfaceConfig = SurfaceConfig()):
         cfg.validate()
         self.cfg = cfg
+        self.settings = asdict(cfg)
 
     def __call__(self, views: list[View]) -> tuple[list[View], dict]:
         from volcap_color.correspondence import View
