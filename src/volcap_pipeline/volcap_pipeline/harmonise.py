@@ -10,8 +10,9 @@ distortion included), ray-casts the surface back into each view along its own pi
 gives E and D that depth instead; a pixel whose own depth lies more than ``surface_agree_mm``
 from the surface (occlusion edges, flying pixels) or where the surface is missing is left out
 of training. Measured on rgbd_box seeds 0 / 1 / 2 (``bench/neural_fused_surface.py`` on
-90b980b): the neural method's distance from the truth 1.585 / 1.517 / 1.497 against 1.661 /
-1.570 / 1.583 with each view's depth; the run's figures are in docs/benchmarks.md.
+8e9cda2): 77 % of the pixels kept, the views' own depth 1.6 mm from the surface at the median;
+the neural method's distance from the truth 1.575 / 1.504 / 1.526 against 1.661 / 1.570 /
+1.583 with each view's depth; the run's figures are in docs/benchmarks.md.
 
 ``run`` is `volcap harmonise`, the demo's short run and `volcap eval color-frames --harmonise`:
 ``volcap_color.neural.run`` with the surface chosen here. The colour stage may not import the
@@ -52,7 +53,8 @@ class SurfaceConfig:
 
 class FusedSurface:
     """``volcap_color.neural.Surface`` from the fusion: a frame set's views fused, the surface
-    ray-cast back into each. Costs 2-4 s a frame set of eight 640x480 views on 2 cores."""
+    ray-cast back into each. Measured on 2 cores: 1.3-1.4 s a frame set of eight 640x480 views
+    (rgbd_box), about 2.5 s of eight 1280x720 (the synthetic studio)."""
 
     def __init__(self, cfg: SurfaceConfig = SurfaceConfig()):
         cfg.validate()
@@ -89,8 +91,9 @@ def _millimetres(depth_m: np.ndarray) -> np.ndarray:
     """Depth in metres as the fusion takes it: uint16 millimetres, 0 = none, with one-pixel
     cracks filled by their 3x3 median. Depth registered to a finer colour grid (and the
     re-projected real views) is cracked every few pixels; a voxel whose nearest pixel is a
-    crack gets no weight, and marching cubes drops every cube beside it: on rgbd_box 40 % of a
-    view's pixels had no surface without the fill, 8 % with it."""
+    crack gets no weight, and marching cubes drops every cube beside it: on rgbd_box 30-41 % of
+    a view's pixels with depth had no surface without the fill, 17-27 % with it (the rest lie
+    where the views' noisy depth of oblique surfaces leaves the TSDF with holes)."""
     import cv2
     mm = np.nan_to_num(depth_m, nan=0.0, posinf=0.0, neginf=0.0) * 1000.0
     mm = np.clip(np.rint(mm), 0, 65535).astype(np.uint16)
