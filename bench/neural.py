@@ -37,6 +37,7 @@ from stability import commit
 
 from volcap_color.apply import ImageCorrector, RegionLut
 from volcap_color.config import HarmoniseConfig
+from volcap_color.neural import surface_summary
 from volcap_core import transport
 from volcap_pipeline.harmonise import SurfaceConfig
 
@@ -48,17 +49,6 @@ def _row(rows: dict, name: str) -> dict:
     s = rows.get(name) or {}
     return {k: s.get(k) for k in ('de2000_mean', 'psnr_mean', 'truth_de2000', 'truth_de2000_exposure',
                                   'chroma_before', 'chroma_after')}
-
-
-def surface_summary(manifest: dict) -> dict:
-    """Where the training pixels lay (``volcap_pipeline.harmonise``): the source, the share of
-    the views' pixels kept and their median distance from the fused surface."""
-    surface = manifest.get('surface') or {}
-    views = [v for s in surface.get('frame_sets', []) for v in s.get('views', [])]
-    apart = [v['median_difference_mm'] for v in views if v.get('median_difference_mm') is not None]
-    return {'source': surface.get('source'), 'kept': float(np.mean([v['kept'] for v in views])) if views else None,
-            'median_difference_mm': float(np.median(apart)) if apart else None,
-            'seconds': float(sum(s.get('seconds', 0.0) for s in surface.get('frame_sets', [])))}
 
 
 def real_texture(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = SurfaceConfig()) -> dict:

@@ -115,6 +115,15 @@ def test_the_harmonisation_trains_on_the_fused_surface(tmp_path):
     assert surface['source'] == 'fused' and len(surface['frame_sets']) == 1       # 'even': the 1st set trains
     assert min(v['kept'] for v in surface['frame_sets'][0]['views']) > 0.95
     assert any(line.startswith('training pixels on the fused surface') for line in report.lines())
+    assert not any('WARNING' in line for line in report.lines())
+    # a camera few of whose pixels lie on the surface (a wrong pose) is named
+    import copy
+
+    from volcap_color.neural import HarmoniseReport
+    manifest = copy.deepcopy(report.manifest)
+    manifest['surface']['frame_sets'][0]['views'][2]['kept'] = 0.3
+    warned = [line for line in HarmoniseReport(manifest, cameras, report.out_dir).lines() if 'WARNING' in line]
+    assert len(warned) == 1 and warned[0].startswith('WARNING: cam2: only 30%')
     own = run(sets, cameras, replace(TINY, points=None), tmp_path / 'views', SurfaceConfig(surface='views'),
               progress=False)
     assert own.manifest['surface']['source'] == 'views'

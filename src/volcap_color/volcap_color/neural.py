@@ -447,20 +447,33 @@ class HarmoniseReport:
         return out
 
     def _surface_lines(self) -> list[str]:
-        surface = self.manifest.get('surface') or {}
-        views = [v for s in surface.get('frame_sets', []) for v in s.get('views', [])]
-        if not views:
+        s = surface_summary(self.manifest)
+        if s['kept'] is None:
             return []
-        kept = {c: float(np.mean([v['kept'] for v in views if v['view'] == c])) for c in self.cameras
-                if any(v['view'] == c for v in views)}
-        apart = [v['median_difference_mm'] for v in views if v['median_difference_mm'] is not None]
-        seconds = sum(s.get('seconds', 0.0) for s in surface['frame_sets'])
-        out = [f"training pixels on the {surface['source']} surface: {np.mean(list(kept.values())):.0%} of them kept "
-               f"(fewest: {min(kept, key=kept.get)} {min(kept.values()):.0%}), the views' own depth "
-               + (f'{np.median(apart):.1f} mm' if apart else '-') + f' from it at the median, {seconds:.0f} s']
+        kept = s['kept_per_camera']
+        out = [f"training pixels on the {s['source']} surface: {s['kept']:.0%} of them kept (fewest: "
+               f"{min(kept, key=kept.get)} {min(kept.values()):.0%}), the views' own depth "
+               + ('-' if s['median_difference_mm'] is None else f"{s['median_difference_mm']:.1f} mm")
+               + f" from it at the median, {s['seconds']:.0f} s"]
         out += [f'WARNING: {c}: only {k:.0%} of its pixels with depth lie on the surface the views fuse to: is its '
                 'pose (the calibration) right?' for c, k in kept.items() if k < SURFACE_KEPT]
         return out
+
+
+def surface_summary(manifest: dict) -> dict:
+    """Where a harmonisation's training pixels lay (its manifest's ``surface``): the source; the
+    share of the views' pixels with depth kept, per camera and on average, and the median
+    distance of the views' own depth from the surface (None with each view's own depth); the
+    seconds it took."""
+    surface = manifest.get('surface') or {}
+    views = [v for s in surface.get('frame_sets', []) for v in s.get('views', [])]
+    kept = {c: float(np.mean([v['kept'] for v in views if v['view'] == c])) for c in dict.fromkeys(
+        v['view'] for v in views)}
+    apart = [v['median_difference_mm'] for v in views if v.get('median_difference_mm') is not None]
+    return {'source': surface.get('source'), 'kept_per_camera': kept,
+            'kept': float(np.mean(list(kept.values()))) if kept else None,
+            'median_difference_mm': float(np.median(apart)) if apart else None,
+            'seconds': float(sum(s.get('seconds', 0.0) for s in surface.get('frame_sets', [])))}
 
 
 def run(sets: list[list[View]], cameras: list[str], cfg: HarmoniseConfig, out_dir: str | Path,
