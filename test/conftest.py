@@ -19,6 +19,11 @@ def _domain_id() -> int:
 
 os.environ['ROS_DOMAIN_ID'] = str(_domain_id())
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+if os.environ.get('PYTEST_XDIST_WORKER'):
+    # `make test` runs a worker per core: OpenMP's pools (torch, Open3D, numba) sized to every
+    # core in each worker and the nodes it starts oversubscribe them. One thread each: the two
+    # torch-heavy files together 128 -> 108 s on 2 cores (set before any of them is imported).
+    os.environ.setdefault('OMP_NUM_THREADS', '1')
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / 'shared' / 'data'
