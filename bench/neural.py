@@ -150,15 +150,14 @@ def cross_view_floor(seed: int, surface: SurfaceConfig = SurfaceConfig(), radius
     from volcap_color.neural import _held_out_split, error_spread
     from volcap_color.neural_samples import training_samples
     from volcap_core.color import linear_to_srgb, srgb_to_linear
-    from volcap_eval.color import distorted_frame_views
+    from volcap_eval.color import distorted_frame_views, spread_frames
     from volcap_pipeline.harmonise import surface_of
     from volcap_pipeline.rig import read_frames_folder
     folder = SHARED / 'rgbd_box'
     views, _ = distorted_frame_views(folder, folder / 'intrinsics.K.txt', 8, seed)
     _, _, frames = read_frames_folder(folder, folder / 'intrinsics.K.txt')
     # the frames distorted_frame_views took, in its order: their true colours, linear
-    picks = np.linspace(0, len(frames) - 1, len(views)).round().astype(int)
-    truth = [srgb_to_linear(frames[i][2] / 255.0) for i in picks]
+    truth = [srgb_to_linear(frames[i][2] / 255.0) for i in spread_frames(len(frames), len(views))]
     cameras = [v.name for v in views]
     source = surface_of(surface)
     placed = source(views)[0] if source is not None else views

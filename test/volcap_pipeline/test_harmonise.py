@@ -127,7 +127,8 @@ def test_the_harmonisation_trains_on_the_fused_surface(tmp_path):
     own = run(sets, cameras, replace(TINY, points=None), tmp_path / 'views', SurfaceConfig(surface='views'),
               progress=False)
     assert own.manifest['surface']['source'] == 'views'
-    assert 0.95 * own.manifest['field_samples'] < report.manifest['field_samples'] <= own.manifest['field_samples']
+    # the fused surface leaves out the few pixels off it (the sphere's rim), so E gets fewer samples
+    assert 0.95 * own.manifest['field_samples'] < report.manifest['field_samples'] < own.manifest['field_samples']
 
     from volcap_color import neural
 

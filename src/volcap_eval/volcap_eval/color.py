@@ -317,6 +317,12 @@ def score_methods(mappings: dict[str, dict[str, Mapping]], matches: dict[tuple[s
 
 
 # real texture -------------------------------------------------------------------------------
+def spread_frames(total: int, count: int) -> np.ndarray:
+    """The indices of ``count`` frames spread evenly over ``total`` (first and last included):
+    the frames ``distorted_frame_views`` takes as its cameras."""
+    return np.linspace(0, total - 1, count).round().astype(int)
+
+
 def distorted_frame_views(folder: str | Path, intrinsics: str | Path, count: int = 8, seed: int = 0
                           ) -> tuple[list[View], dict[str, ColorResponse]]:
     """``count`` frames spread over a posed RGB-D folder (``volcap fuse-frames`` layout) as the
@@ -332,7 +338,7 @@ def distorted_frame_views(folder: str | Path, intrinsics: str | Path, count: int
         raise BadInput(f'{folder} has {len(frames)} frames, {count} asked for')
     rng = np.random.default_rng(seed)
     views, responses = [], {}
-    for k, i in enumerate(np.linspace(0, len(frames) - 1, count).round().astype(int)):
+    for k, i in enumerate(spread_frames(len(frames), count)):
         _, depth_mm, rgb, T = frames[i]
         name = f'cam{k}'
         responses[name] = ColorResponse.random(rng)
