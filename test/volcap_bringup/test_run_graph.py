@@ -80,3 +80,20 @@ def test_volcap_run_fuses_every_capture_frame_set(capture_bag, tmp_path, mode, g
     # 10 mm voxels, ground-truth poses, full-size clean depth: measured 1.56 mm and 83.0 % of the
     # observable surface (60.0 % of the whole mesh), the same in both modes
     assert scores['accuracy_mm'] < 2.0 and scores['completeness'] > 0.78
+
+
+def test_the_player_is_asked_only_for_session_topics_the_bag_has(studio_bag):
+    """A volcap bag carries /volcap/rig and /volcap/phase, not /tf_static: asking for it made the
+    player warn on every healthy run (`make demo`)."""
+    from volcap_bringup.run_graph import expected_subscribers, played_topics
+    from volcap_core import topics
+    from volcap_core.bag_reader import BagReader
+    from volcap_core.frames import camera_topics, read_rig
+    with BagReader(studio_bag) as reader:
+        cameras = read_rig(reader).names
+        layout = camera_topics(reader, cameras)
+        played = played_topics(reader, cameras, layout)
+        assert set(played) <= set(reader.topics)
+    assert topics.RIG in played and topics.PHASE in played and topics.TF_STATIC not in played
+    assert all(layout[c]['color'] in played and layout[c]['depth'] in played for c in cameras)
+    assert set(expected_subscribers(cameras, layout, played)) == set(played)

@@ -19,10 +19,13 @@ def calibration_yaml(cameras=('cam0', 'cam1'), gain=1.5, with_model=True):
 
 def test_without_a_model_images_pass_through_or_are_dropped():
     c = CameraCorrection('cam1')
+    assert c.status()[0] == 'ok' and 'waiting' in c.status()[1]     # no image yet: nothing to act on
     assert c.apply(IMAGE) is IMAGE and c.passed == 1
     assert c.status()[0] == 'warn' and 'passed through' in c.status()[1]
     c.passthrough = False
     assert c.apply(IMAGE) is None and 'dropped' in c.status()[1]
+    dropping = CameraCorrection('cam2', passthrough=False)
+    assert dropping.apply(IMAGE) is None and dropping.status()[0] == 'warn'
 
 
 def test_a_calibration_model_is_used_and_a_bad_one_keeps_the_current_model():

@@ -119,6 +119,30 @@ def test_capture_request_relearns_the_plate_and_the_cleaner_follows_new_inputs()
     assert s.cleaner.cfg.boundary_px == 0          # the running cleaner takes a new config at once
 
 
+def test_a_missing_clean_plate_is_told_once_capture_frames_are_cleaned_without_one():
+    s = _session()
+    _ready(s)
+    assert not s.missing_clean_plate                 # a graph starting: no frame yet
+    s.set_phase(topics.CALIBRATION_PHASE)
+    assert _kinds(s.add(_pair(1))) == ['cleaned']
+    assert not s.missing_clean_plate                 # the board phase needs no plate
+    s.set_phase(topics.CLEAN_PLATE)
+    s.add(_pair(2))
+    s.set_phase(topics.CAPTURE)
+    s.add(_pair(3, subject=True))
+    assert s.has_clean_plate and not s.missing_clean_plate
+    bare = _session()                                # a driver with no session phase, no plate
+    _ready(bare)
+    assert _kinds(bare.add(_pair(1, subject=True))) == ['cleaned']
+    assert bare.missing_clean_plate
+    bare.capture_clean_plate(1)                      # the operator asked: being learnt
+    assert not bare.missing_clean_plate
+    unmasked = CleanPlateSession('cam0', DepthFilterConfig(mask_mode='none'), lambda arrays: arrays)
+    _ready(unmasked)
+    unmasked.add(_pair(1, subject=True))
+    assert not unmasked.missing_clean_plate          # nothing asks for a plate
+
+
 def test_a_rig_without_this_camera_is_refused():
     s = _session()
     with pytest.raises(KeyError):

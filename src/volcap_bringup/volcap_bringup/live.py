@@ -36,7 +36,7 @@ from .graph import (
     stream_remaps,
 )
 from .probe import RendererProbe
-from .run_graph import expected_subscribers, graph_subscriptions
+from .run_graph import expected_subscribers, graph_subscriptions, played_topics
 from .session import GraphSession
 
 
@@ -96,15 +96,15 @@ def live_nodes(cfg: LiveConfig, calibration: Calibration) -> tuple[list[NodeSpec
             rig = read_rig(reader)
             layout = camera_topics(reader, rig.names)
             loop_offset = _capture_offset_s(reader)
-        missing = [c for c in cameras if c not in layout]
-        if missing:
-            raise BadInput(f'cameras {missing} are not in {cfg.bag}')
+            missing = [c for c in cameras if c not in layout]
+            if missing:
+                raise BadInput(f'cameras {missing} are not in {cfg.bag}')
+            played = played_topics(reader, cameras, layout)
         maps = {c: stream_remaps(c, layout[c]) for c in cameras}
         for c in cameras:
             filters[c].update(maps[c][1])
         corrector.update(maps[cameras[0]][1])
         remaps = {c: maps[c][0] for c in cameras}
-        played = [t for c in cameras for t in layout[c].values()] + [topics.RIG, topics.PHASE, topics.TF_STATIC]
         expected = expected_subscribers(cameras, layout, played, controller=True, split_stages=cfg.split_stages)
         source = ('volcap_driver', 'bag_player', {
             'bag': str(cfg.bag), 'rate': cfg.rate, 'loop': True, 'restamp': True, 'loop_offset': loop_offset,

@@ -73,10 +73,19 @@ def expected_subscribers(cameras: list[str], layout: dict[str, dict[str, str]], 
         expected[layout[c]['color_info']] = on_color + watched
         expected[layout[c]['depth']] = 1
         expected[layout[c]['depth_info']] = 1 + watched
-    for t in (topics.RIG, topics.TF_STATIC):
-        expected[t] = len(cameras)
-    expected[topics.PHASE] = len(cameras) + 1
+    for t, n in ((topics.RIG, len(cameras)), (topics.TF_STATIC, len(cameras)), (topics.PHASE, len(cameras) + 1)):
+        if t in expected:       # played: the bag has it
+            expected[t] = n
     return expected
+
+
+def played_topics(reader: BagReader, cameras: list[str], layout: dict[str, dict[str, str]]) -> list[str]:
+    """What the graph's bag player plays: every camera's streams, and the session's rig, phase
+    and the drivers' static transforms where the bag has them (a volcap bag carries
+    ``/volcap/rig``, a vendor driver's recording ``/tf_static``; asking for one it lacks would
+    read as a warning on a healthy run)."""
+    return ([t for c in cameras for t in layout[c].values()]
+            + [t for t in (topics.RIG, topics.PHASE, topics.TF_STATIC) if t in reader.topics])
 
 
 def run_graph(cfg: RunConfig) -> dict:
@@ -90,13 +99,13 @@ def run_graph(cfg: RunConfig) -> dict:
         capture_sets = _capture_sets(reader, layout[rig.names[0]]['color'])
         duration = (reader.end_ns - reader.start_ns) / 1e9
         bag_damage = reader.damage       # what the scan met; the player reports the same as it plays
-    cameras = [c for c in rig.names if c in calibration.cameras]
-    if not cameras:
-        raise BadInput(f'no camera of {bag} is in the calibration {calibration_path}')
+        cameras = [c for c in rig.names if c in calibration.cameras]
+        if not cameras:
+            raise BadInput(f'no camera of {bag} is in the calibration {calibration_path}')
+        played = played_topics(reader, cameras, layout)
     frames_dir = out / 'frames'
     if frames_dir.exists() and any(frames_dir.iterdir()):
         raise FileExistsError(f'{frames_dir} already holds a sequence; choose another --out')
-    played = [t for c in cameras for t in layout[c].values()] + [topics.RIG, topics.PHASE, topics.TF_STATIC]
     nodes = graph_parameters(bag, rig, cameras, frames_dir, cfg, played, layout)
     t_start = time.monotonic()
     with GraphSession('volcap_run', calibration) as session:

@@ -26,6 +26,7 @@ class CameraCorrection:
         self.neural = False
         self.neural_problem = ''
         self.corrected = self.passed = self.skipped = 0
+        self.without_model = 0      # images that came while there was no model (passed or dropped)
         self.ms: deque[float] = deque(maxlen=100)    # the latest corrections' times
         self._buffer: np.ndarray | None = None
 
@@ -71,6 +72,7 @@ class CameraCorrection:
         through), or None when it is dropped. The output buffer is reused: publish a copy.
         ``window``: ``rgb`` is a region of the camera's image (``ImageCorrector``)."""
         if self.corrector is None:
+            self.without_model += 1
             if not self.passthrough:
                 return None
             self.passed += 1
@@ -84,6 +86,11 @@ class CameraCorrection:
     def status(self) -> tuple[str, str, dict]:
         """(level, message, values) for diagnostics."""
         problem = f'; {self.neural_problem}' if self.neural_problem else ''
+        if self.corrector is None and not self.without_model:
+            # a graph starting: the calibration is published latched and usually lands before
+            # the first image; only an image without a model is something to act on
+            return 'warn' if problem else 'ok', f'{self.camera}: waiting for a colour model{problem}', \
+                {'passed': self.passed, 'skipped': self.skipped}
         if self.corrector is None:
             return 'warn', (f'{self.camera}: no colour model yet; images are '
                             f'{"passed through" if self.passthrough else "dropped"}{problem}'), \

@@ -276,10 +276,12 @@ class DepthFilter(Node):
             # the count is in the values: the message (and its one log line) stays while it lasts
             return 'warn', (f'{self.camera}: cleaned frames have no depth left (empty stage, or the range gate / '
                             'clean plate removes everything)'), dict(values, empty_frames=self.empty_streak)
-        if session.cfg.mask_mode == 'clean_plate' and not session.has_clean_plate and session.learn_remaining == 0:
+        if session.missing_clean_plate:
             service = f'{self.get_fully_qualified_name()}/capture_clean_plate'
             return 'warn', (f'{self.camera}: no clean plate learnt: depth is published unmasked; empty the stage and '
                             f'call {service} (std_srvs/srv/Trigger)'), dict(values, mask='none (no clean plate)')
+        if session.cfg.mask_mode == 'clean_plate' and not session.has_clean_plate:
+            values['mask'] = 'none (no clean plate yet)'
         return 'ok', f'{self.camera}: {self.processed} frames cleaned', values
 
 

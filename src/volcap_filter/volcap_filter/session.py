@@ -99,6 +99,7 @@ class CleanPlateSession:
         self.models: dict[str, CameraModel] = {}
         self.phase: str | None = None
         self.learn_remaining = 0
+        self.cleaned_for_capture = 0    # frames cleaned outside the calibration and clean-plate phases
         self.cleaner: DepthCleaner | None = None
         self.held: deque[tuple[FramePair, str | None]] = deque()
 
@@ -149,6 +150,15 @@ class CleanPlateSession:
     def has_clean_plate(self) -> bool:
         return self.background.frames > 0
 
+    @property
+    def missing_clean_plate(self) -> bool:
+        """Frames are being cleaned for capture without the clean plate the mask needs (none
+        learnt, none being learnt). Not before the first such frame: a graph that starts before
+        its driver or bag, or a session still showing the board or learning the plate in its
+        ``clean_plate`` phase, lacks nothing yet."""
+        return (self.cfg.mask_mode == 'clean_plate' and not self.has_clean_plate and self.learn_remaining == 0
+                and self.cleaned_for_capture > 0)
+
     # decisions ---------------------------------------------------------------------------
     def waiting_for(self, pair: FramePair) -> str | None:
         """What a pair still needs before it can be cleaned, or None."""
@@ -191,6 +201,8 @@ class CleanPlateSession:
                     out += self._late_plate_frame_done(phase)
                 return out
             result = cleaner.process(color, depth)
+            if phase not in (topics.CALIBRATION_PHASE, topics.CLEAN_PLATE):
+                self.cleaned_for_capture += 1
         except ValueError as e:   # conversion errors, sizes that disagree with camera_info, empty depth
             return [Outcome('failed', f'{self.camera}: frame skipped: {e}', pair)]
         # the colour the depth was cleaned with: averaged where the scene held still (temporal)
