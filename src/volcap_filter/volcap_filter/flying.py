@@ -93,6 +93,9 @@ class FlyingPixelConfig:
     sparse_radius: int = setting(4, 'window radius (px) over which a sparse return (dark material) finds its surface '
                                  '(0 = off)', 0, 8)
     sparse_support: int = setting(4, 'returns on its own surface a sparse return needs in that window', 1, 100)
+    curved_support: int = setting(10, 'a hole between returns (the sparse fill, the completion\'s first pass) takes '
+                                  'the quadric through them instead of the plane where the plane misses them by more '
+                                  'than a sigma and this many returns are in reach (0 = planes only)', 0, 100)
 
     def validate(self) -> None:
         validate(self)
@@ -278,12 +281,40 @@ def _keep_sparse(zp, r, slope, base, quad, min_support, keep):
 
 
 @numba.njit(cache=True)
-def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, min_quadrants, extrapolate, out):
+def _quadric_at_hole(xs, ys, zs, k):
+    """(value at the hole, worst residual) of the least-squares quadric z = a + b x + c y + d x^2
+    + e x y + f y^2 through the first ``k`` points (x, y offsets from the hole); worst is inf when
+    the fit is singular."""
+    a = np.empty((k, 6))
+    for i in range(k):
+        x, y = xs[i], ys[i]
+        a[i, 0], a[i, 1], a[i, 2], a[i, 3], a[i, 4], a[i, 5] = 1.0, x, y, x * x, x * y, y * y
+    ata = a.T @ a
+    if abs(np.linalg.det(ata)) < 1e-6:
+        return 0.0, np.inf
+    coef = np.linalg.solve(ata, a.T @ zs[:k])
+    worst = 0.0
+    for i in range(k):
+        fit = 0.0
+        for j in range(6):
+            fit += a[i, j] * coef[j]
+        worst = max(worst, abs(zs[i] - fit))
+    return coef[0], worst
+
+
+@numba.njit(cache=True)
+def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, min_quadrants, extrapolate, out,
+                 curved=0):
     """``out`` (unpadded, zeros) gets the depth of the ``fillable`` holes from the plane through
     the ``support`` returns around them (``zp`` and ``support`` padded by ``r``), when they lie
     in ``min_quadrants`` of the four quadrants; see ``fill_sparse_returns``. With
     ``extrapolate`` the plane may pass beyond the returns' depth range by one sigma
-    (``complete_inside``'s extending passes); else only within it."""
+    (``complete_inside``'s extending passes); else only within it. With ``curved`` (a count of
+    returns, 0 = off) a hole with at least that many returns around it whose plane misses one of
+    them by more than a sigma takes the least-squares quadric through them where it fits them
+    better (``_quadric_at_hole``): the plane of a convex patch (a shoe's toe and top, an ankle)
+    lies behind its middle by the patch's sagitta, 5-10 mm over a 9x9 window at 2.5 m, more than
+    the 5 mm the fused score allows, or misses its returns by over 3 sigma and fills nothing."""
     h, w = out.shape
     n = (2 * r + 1) * (2 * r + 1)
     xs, ys, zs = np.empty(n), np.empty(n), np.empty(n)
@@ -333,6 +364,10 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, min_q
             worst = 0.0
             for i in range(k):
                 worst = max(worst, abs(zs[i] - c0 - c1 * xs[i] - c2 * ys[i]))
+            if curved and k >= curved and worst > sigma:
+                q0, qworst = _quadric_at_hole(xs, ys, zs, k)
+                if qworst < worst:
+                    c0, worst = q0, qworst
             slack = sigma if extrapolate else 0.0
             if worst <= 3.0 * sigma and lo - slack <= c0 <= hi + slack:
                 out[v, u] = c0
@@ -371,8 +406,10 @@ def fill_sparse_returns(depth_m: np.ndarray, removed: np.ndarray, focal_px: floa
     fillable = (valid == 0) & sparse & ~np.asarray(removed, bool) & (reach >= cfg.sparse_support)
     slope = float(np.tan(np.radians(cfg.max_incidence_deg)) / focal_px)
     _fill_sparse(np.pad(z, r), np.pad(support, r), fillable, r, slope, cfg.noise_base, cfg.noise_quad,
-                 cfg.sparse_support, 3, False, out)     # interpolated, never extrapolated
+                 cfg.sparse_support, 3, False, out, cfg.curved_support)     # interpolated, never extrapolated
     return out
+
+
 
 
 def complete_inside(depth_m: np.ndarray, region: np.ndarray, focal_px: float, radius: int, extend: int,
@@ -423,7 +460,7 @@ def complete_inside(depth_m: np.ndarray, region: np.ndarray, focal_px: float, ra
         # Written straight into the box: the kernel reads depth only where ``support`` is set,
         # never at the holes it fills, so this pass sees none of its own fills.
         _fill_sparse(zp, support, fillable, r, slope, cfg.noise_base, cfg.noise_quad, cfg.sparse_support,
-                     3 if k == 0 else 1, k > 0, core)
+                     3 if k == 0 else 1, k > 0, core, cfg.curved_support if k == 0 else 0)
         fresh = fillable & (core > 0)
         support[r:-r, r:-r] |= fresh        # the next pass grows from this one's fills
         count += int(np.count_nonzero(fresh))
