@@ -60,6 +60,8 @@ def main():
     ap.add_argument('--complete-radius', type=int, help='the depth filter\'s complete_radius (0: before holes inside '
                     'the foreground mask were completed)')
     ap.add_argument('--complete-extend', type=int, help='the depth filter\'s complete_extend')
+    ap.add_argument('--curved-support', type=int, help='the flying-pixel config\'s curved_support (0: holes filled '
+                    'and completed by planes only, before 2026-12-07)')
     args = ap.parse_args()
     bands = [float(b) for b in args.bands.split(',')]
     names = [f'{bands[k]:.2f}-{bands[k + 1]:.2f} m' for k in range(len(bands) - 1)]
@@ -73,6 +75,8 @@ def main():
         cfg.complete_radius = args.complete_radius
     if args.complete_extend is not None:
         cfg.complete_extend = args.complete_extend
+    if args.curved_support is not None:
+        cfg.flying.curved_support = args.curved_support
     fs, cleaned = next(cleaned_frame_sets(args.bag, {'volcap': cfg}, limit=1))
     frame = next(f for f in captures if abs(f['stamp_ns'] - fs.stamp_ns) < 20_000_000)
     arrays = gt.arrays(frame['index'])

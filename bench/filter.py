@@ -3,8 +3,9 @@
     .venv/bin/python bench/filter.py [--bag DIR]
 
 Times each flying-pixel filter (ours with and without the sparse-return rescue), the fill of the
-holes amid sparse returns, registration, the clean-plate mask, the whole cleaning (with and
-without the completion of holes inside the mask) and the
+holes amid sparse returns (with and without the quadric on curved patches), registration, the
+clean-plate mask, the whole cleaning (with and without the completion of holes inside the mask,
+and with planes only) and the
 node's whole callback (message decode, cleaning, point cloud, message encode), with the bare
 cv2/numpy operations they compete with measured in the same run: a 3x3 min/max filter (the
 cheapest way to see a depth step) and cv2.projectPoints of every depth pixel. Without --bag, a
@@ -58,16 +59,17 @@ def main() -> int:
         bag = Path(tmp.name) / 'bag'
         synthesize(bag, SynthConfig(cameras=8, frames=2, board_poses=0, background_frames=2, seed=11), progress=False)
     rig = GroundTruth(bag).rig
-    cleaners, uncompleted, frames = {}, {}, []
+    cleaners, uncompleted, planes, frames = {}, {}, {}, []
     for fs in frame_sets(bag, phases=('clean_plate', 'capture')):
         for name, f in fs.cameras.items():
             if name not in cleaners:
                 reg = DepthRegistration(f.depth_model, f.color_model, rig.camera(name).T_color_depth)
                 cleaners[name] = DepthCleaner(reg)
                 uncompleted[name] = DepthCleaner(reg, DepthFilterConfig(complete_radius=0))
+                planes[name] = DepthCleaner(reg, DepthFilterConfig(flying=FlyingPixelConfig(curved_support=0)))
             if fs.phase == 'clean_plate':
-                cleaners[name].learn_background(f.color, f.depth)
-                uncompleted[name].learn_background(f.color, f.depth)
+                for c in (cleaners, uncompleted, planes):
+                    c[name].learn_background(f.color, f.depth)
             else:
                 frames.append((name, f))
     msgs = [(name, numpy_to_image(f.color, 'rgb8', 0, 'c'), numpy_to_image(np.round(f.depth * 1000).astype(np.uint16),
@@ -94,6 +96,8 @@ def main() -> int:
         ('volcap flying-pixel filter (with the sparse-return rescue)',
          timed(lambda f: flying_pixels(f[1].depth, f[1].depth_model.fx), frames)),
         ('fill of the holes amid sparse returns', timed(lambda f: fill_sparse_returns(*removed[id(f)]), frames)),
+        ('the same fill, planes only (curved_support 0)',
+         timed(lambda f: fill_sparse_returns(*removed[id(f)], FlyingPixelConfig(curved_support=0)), frames)),
         ('bare cv2.projectPoints of all depth pixels (reference)',
          timed(lambda f: f[1].color_model.project(cleaners[f[0]].registration.rays.reshape(-1, 3)
                                                   * np.maximum(f[1].depth.reshape(-1, 1), 0.1)), frames)),
@@ -101,6 +105,8 @@ def main() -> int:
         ('whole cleaning (DepthCleaner.process)', timed(lambda f: cleaners[f[0]].process(f[1].color, f[1].depth), frames)),
         ('whole cleaning without the completion inside the mask (complete_radius 0)',
          timed(lambda f: uncompleted[f[0]].process(f[1].color, f[1].depth), frames)),
+        ('whole cleaning, holes filled and completed by planes only (curved_support 0)',
+         timed(lambda f: planes[f[0]].process(f[1].color, f[1].depth), frames)),
         ('node callback (decode, clean, cloud, encode)', timed(node_callback, msgs)),
     ]
     stages = {}
