@@ -213,3 +213,19 @@ def test_faults_bad_calibration_silent_camera_and_full_disk(ros_context, procs, 
     before = fused()
     assert until(lambda: fused() > before)
     assert procs[-1].poll() is None
+
+
+def test_waiting_for_the_calibration_is_reported_after_the_grace_only(ros_context, procs, probe_factory):
+    """A graph starting waits a moment for the latched calibration (discovery): OK, saying so.
+    Past ``calibration_grace_s`` (here 0 for the second node) it is something to act on: WARN."""
+    probe = probe_factory([('/' + topics.DIAGNOSTICS, DiagnosticArray, qos.EVENTS)])
+    procs.append(start_node('volcap_fusion', 'tsdf_fusion', {'voxel_size': VOXEL}, remaps={'__node': 'starting'}))
+    procs.append(start_node('volcap_fusion', 'tsdf_fusion', {'voxel_size': VOXEL, 'calibration_grace_s': 0.0},
+                            remaps={'__node': 'forgotten'}))
+
+    def levels(node):
+        return [s.level for _, m in probe.got['/' + topics.DIAGNOSTICS] for s in m.status
+                if s.name.startswith(node + ':') and 'waiting for the calibration' in s.message]
+    assert probe.spin_until(lambda: levels('starting') and levels('forgotten'), timeout=60)
+    assert levels('starting')[0] == DiagnosticStatus.OK        # its first report, within the grace
+    assert levels('forgotten')[0] == DiagnosticStatus.WARN

@@ -43,6 +43,9 @@ class FusionNodeConfig:
     silent_periods: float = setting(10.0, 'a camera is reported silent (ERROR) once the others have delivered this '
                                     'many frames since its last one, until it returns (all quiet together: idle)',
                                     2.0, 1000.0)
+    calibration_grace_s: float = setting(15.0, 'waiting longer than this for the latched calibration is reported '
+                                         '(WARN); before it the node is starting (discovery takes 2-5 s on 2 cores)',
+                                         0.0, 3600.0)
 
 
 @dataclass

@@ -91,6 +91,7 @@ class TsdfFusionNode(Node):
         self.glb_stamps: deque[int] = deque(maxlen=64)
 
         self.diagnostics = Diagnostics(self, 'tsdf fusion')
+        self.started = time.monotonic()
         self.calibration: Calibration | None = None
         self.cameras: list[str] = []
         self.sync: FrameSetSynchronizer | None = None
@@ -295,7 +296,12 @@ class TsdfFusionNode(Node):
 
     def _report(self) -> None:
         if self.calibration is None:
-            self.diagnostics.report('warn', f'waiting for the calibration on /{topics.CALIBRATION}')
+            # a graph starting: the latched calibration arrives once discovery matches the
+            # publisher; waiting past the grace is something to act on (no calibrate step, a
+            # calibration for other cameras, another ROS domain)
+            waited = time.monotonic() - self.started
+            self.diagnostics.report('warn' if waited > self.node_cfg.calibration_grace_s else 'ok',
+                                    f'waiting for the calibration on /{topics.CALIBRATION}')
             return
         w = self.worker
         now = time.monotonic_ns()
