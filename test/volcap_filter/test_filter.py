@@ -368,8 +368,8 @@ def test_holes_on_a_curved_surface_take_the_quadric_through_their_returns():
     """A plane through the returns around a hole on a convex patch lies behind its middle (the
     patch's sagitta: 5-10 mm over a 9x9 window at 2.5 m on a shoe), more than the 5 mm the fused
     score allows; the quadric follows the curve. Planes only (``curved_support`` 0) against the
-    default, on the same dark log: the sparse fill and the completion's first pass both; on a flat
-    wall (the plane fits within a sigma) nothing changes."""
+    default, on the same dark log: the sparse fill and the completion's first pass both; and what
+    the quadric costs a noisy flat wall."""
     depth, truth, log = _log_scene(np.random.default_rng(2))
     # the filter's noise model told the scene's (1 mm at 2.5 m): the plane's miss is then beyond a sigma
     quiet = dict(noise_base=0.0005, noise_quad=0.0002)
@@ -389,6 +389,13 @@ def test_holes_on_a_curved_surface_take_the_quadric_through_their_returns():
     assert np.median(quad_err) < 0.5 * np.median(plane_err)
     assert np.median(quad_err) < 0.0025
     assert quad_share > plane_share + 0.2          # planes that miss by over 3 sigma fill nothing (here 0.66 / 0.95)
-    flat = np.where(depth > 0, np.float32(2.5), 0)  # a flat wall: the same fills either way
-    same = [flat + fill_sparse_returns(flat, np.zeros(flat.shape, bool), 500.0, c) for c in (planes, quadrics)]
-    assert np.array_equal(*same)
+    # What it costs a flat wall with the same noise: where the noise makes a plane miss its
+    # returns by a sigma, the quadric follows the noise a little (median 0.18-0.20 -> 0.26 mm on
+    # seeds 2-4: the still studio's extra 0.01-0.02 mm of jitter), never off the wall
+    rng = np.random.default_rng(2)
+    flat = np.where(rng.random(depth.shape) < 0.2, 2.5 + rng.normal(0, 0.001, depth.shape), 0).astype(np.float32)
+    fills = [fill_sparse_returns(flat, np.zeros(flat.shape, bool), 500.0, c) for c in (planes, quadrics)]
+    assert not np.array_equal(*fills)                                # the gate opens on noise too
+    (plane_fills, quad_fills) = [f[f > 0] for f in fills]
+    assert abs(len(quad_fills) - len(plane_fills)) < 0.01 * len(plane_fills)
+    assert np.median(np.abs(quad_fills - 2.5)) < 0.0004 and np.abs(quad_fills - 2.5).max() < 0.003

@@ -281,11 +281,12 @@ def _keep_sparse(zp, r, slope, base, quad, min_support, keep):
 
 
 @numba.njit(cache=True)
-def _quadric_at_hole(xs, ys, zs, k):
+def _quadric_at_hole(xs, ys, zs, k, design):
     """(value at the hole, worst residual) of the least-squares quadric z = a + b x + c y + d x^2
     + e x y + f y^2 through the first ``k`` points (x, y offsets from the hole); worst is inf when
-    the fit is singular."""
-    a = np.empty((k, 6))
+    the fit is singular. ``design``: an (at least k, 6) buffer the caller allocates once for
+    every hole of an image."""
+    a = design[:k]
     for i in range(k):
         x, y = xs[i], ys[i]
         a[i, 0], a[i, 1], a[i, 2], a[i, 3], a[i, 4], a[i, 5] = 1.0, x, y, x * x, x * y, y * y
@@ -318,6 +319,7 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, min_q
     h, w = out.shape
     n = (2 * r + 1) * (2 * r + 1)
     xs, ys, zs = np.empty(n), np.empty(n), np.empty(n)
+    design = np.empty((n, 6))
     for v in range(h):
         for u in range(w):
             if not fillable[v, u]:
@@ -365,7 +367,7 @@ def _fill_sparse(zp, support, fillable, r, slope, base, quad, min_support, min_q
             for i in range(k):
                 worst = max(worst, abs(zs[i] - c0 - c1 * xs[i] - c2 * ys[i]))
             if curved and k >= curved and worst > sigma:
-                q0, qworst = _quadric_at_hole(xs, ys, zs, k)
+                q0, qworst = _quadric_at_hole(xs, ys, zs, k, design)
                 if qworst < worst:
                     c0, worst = q0, qworst
             slack = sigma if extrapolate else 0.0
@@ -382,8 +384,9 @@ def fill_sparse_returns(depth_m: np.ndarray, removed: np.ndarray, focal_px: floa
     shoes fused 0 %. A hole is filled when its 3x3 neighbourhood is mostly holes, the
     ``sparse_radius`` window around it holds at least ``sparse_support`` sparse returns
     (themselves amid holes) in three of its four quadrants, all on one surface, and the plane
-    through them fits them within 3 sigma of the sensor's noise and passes within their depth
-    range at the hole (interpolated, never extrapolated). ``depth_m`` is the depth after the
+    through them (on a curved patch the quadric, ``curved_support``) fits them within 3 sigma of
+    the sensor's noise and passes within their depth range at the hole (interpolated, never
+    extrapolated). ``depth_m`` is the depth after the
     flying-pixel filter and ``removed`` its removals: never support, never filled. Dense
     surfaces are untouched."""
     cfg = cfg or FlyingPixelConfig()
@@ -408,8 +411,6 @@ def fill_sparse_returns(depth_m: np.ndarray, removed: np.ndarray, focal_px: floa
     _fill_sparse(np.pad(z, r), np.pad(support, r), fillable, r, slope, cfg.noise_base, cfg.noise_quad,
                  cfg.sparse_support, 3, False, out, cfg.curved_support)     # interpolated, never extrapolated
     return out
-
-
 
 
 def complete_inside(depth_m: np.ndarray, region: np.ndarray, focal_px: float, radius: int, extend: int,
