@@ -25,10 +25,10 @@ RADIUS = 0.3
 GAINS = {'cam0': (1.0, 1.0, 1.0), 'cam1': (0.75, 0.85, 1.1), 'cam2': (1.2, 1.0, 0.8)}
 
 
-def _view(name: str, eye, turn: float, size=(128, 96), frequency: float = 1.0) -> View:
+def _view(name: str, eye, turn: float, size=(128, 96), frequency: float = 1.0, crosstalk=None) -> View:
     """A textured sphere at the origin seen from ``eye``; each camera has its own channel gains
-    and vignetting, and the texture (``frequency`` times finer than the default) turns by
-    ``turn`` radians between frames."""
+    and vignetting (and, given, a ``crosstalk`` matrix after them), and the texture
+    (``frequency`` times finer than the default) turns by ``turn`` radians between frames."""
     w, h = size
     cam = CameraModel(w, h, 0.9 * w, 0.9 * w, w / 2, h / 2)
     T = look_at(eye, (0.0, 0.0, 0.0))
@@ -47,7 +47,8 @@ def _view(name: str, eye, turn: float, size=(128, 96), frequency: float = 1.0) -
                        0.35 + 0.2 * np.sin(9 * f * q[:, 2] + 1)], axis=1)
     u = cam.pixel_rays()[..., :2].reshape(-1, 2)
     vignette = 1.0 - 0.25 * np.sum((u / np.abs(u).max(0)) ** 2, axis=1) / 2
-    linear = np.clip(albedo * np.asarray(GAINS[name]) * vignette[:, None], 0, 1)
+    linear = albedo * np.asarray(GAINS[name]) * vignette[:, None]
+    linear = np.clip(linear if crosstalk is None else linear @ np.asarray(crosstalk).T, 0, 1)
     linear[disc <= 0] = 0.05
     color = np.round(linear_to_srgb(linear) * 255).astype(np.uint8).reshape(h, w, 3)
     z = (t * (rays[:, 2])).astype(np.float32)          # depth along the optical axis
@@ -248,6 +249,60 @@ def test_the_reference_is_anchored_to_the_charts_or_grey_world(tmp_path):
     with pytest.raises(ValueError, match='no chart colour model for cam1'):
         harmonise(sets, list(GAINS), replace(cfg, anchor='chart'), tmp_path / 'x', progress=False,
                   chart_models={'cam0': less_red['cam0']})
+
+
+CROSSTALK = {'cam0': np.eye(3), 'cam1': [[0.88, 0.12, 0.0], [0.0, 0.9, 0.1], [0.1, 0.0, 0.9]],
+             'cam2': [[0.92, 0.0, 0.08], [0.1, 0.86, 0.04], [0.0, 0.12, 0.88]]}
+
+
+def test_a_chart_models_crosstalk_is_the_camera_matrix_without_its_gains():
+    """The chart model of a camera that mixes its channels by M after gains d is (M diag d)^-1;
+    ``chart_crosstalk`` gives M back (rows summing to 1) for every linear-light model form."""
+    from volcap_color.neural import chart_crosstalk
+    from volcap_core.color import ColorModel
+    m, d = np.asarray(CROSSTALK['cam2']), np.array([0.7, 1.1, 1.3])
+    inverse = np.linalg.inv(m @ np.diag(d))
+    assert chart_crosstalk(ColorModel('matrix_3x3', inverse)) == pytest.approx(m, abs=1e-6)
+    affine = ColorModel('affine_3x4', np.hstack([inverse, [[0.01], [0.0], [-0.02]]]))
+    assert chart_crosstalk(affine) == pytest.approx(m, abs=1e-6)
+    assert chart_crosstalk(ColorModel('paper_diagonal', np.diag([1.2, 1.0, 0.9]))) == pytest.approx(np.eye(3))
+    assert chart_crosstalk(ColorModel('matrix_3x3', np.zeros((3, 3)))) == pytest.approx(np.eye(3))
+
+
+def test_d_undoes_the_crosstalk_the_charts_measured(tmp_path):
+    """Cameras whose channels mix differently (10 %): E's gains and tone curves cannot say how,
+    and D's colour-dependent gains cannot undo a matrix, so without the charts' crosstalk every
+    camera but cam0 (which has none) keeps its mixing (3-4 a* b* units off the truth). With it
+    E's responses hold the mixing, D undoes it first, and every camera maps onto the truth
+    (the albedo, since the reference is the charts') several times closer."""
+    from volcap_core.color import ColorModel, srgb_to_lab, srgb_to_linear
+    sets = [[_view(n, e, 0.15 * f, crosstalk=CROSSTALK[n]) for n, e in EYES.items()] for f in range(2)]
+    charts = {c: ColorModel('matrix_3x3', np.linalg.inv(np.asarray(CROSSTALK[c]) @ np.diag(GAINS[c])))
+              for c in GAINS}
+    cfg = replace(TINY, anchor='chart', reference='mean', points=15_000, field_epochs=30, mapper_epochs=30)
+    errors = {}
+    for fixed in (True, False):
+        harm = harmonise(sets[:1], list(GAINS), replace(cfg, crosstalk_from_chart=fixed), tmp_path / str(fixed),
+                         progress=False, chart_models=charts)
+        assert (harm.report['crosstalk'] is not None) == fixed
+        if fixed:
+            assert np.asarray(harm.report['crosstalk']['cam1']) == pytest.approx(np.asarray(CROSSTALK['cam1']), abs=1e-3)
+        worst = 0.0
+        for view in sets[1]:
+            ok = view.depth.reshape(-1) > 0
+            h, w = view.depth.shape
+            ys, xs = np.divmod(np.flatnonzero(ok), w)
+            xy = np.stack([(xs + 0.5) / w, (ys + 0.5) / h], axis=1)
+            rgb = view.color.reshape(-1, 3)[ok] / 255.0
+            u = view.camera.pixel_rays()[..., :2].reshape(-1, 2)
+            vignette = (1.0 - 0.25 * np.sum((u / np.abs(u).max(0)) ** 2, axis=1) / 2)[ok]
+            true_lin = srgb_to_linear(rgb) @ charts[view.name].matrix.T / vignette[:, None]
+            mapped = harm.map_colors(view.name, rgb, xy)
+            # the charts' reference is the albedo itself; a* b* carry what the mixing does
+            worst = max(worst, float(np.abs(srgb_to_lab(mapped) - srgb_to_lab(
+                linear_to_srgb(np.clip(true_lin, 0, 1))))[:, 1:].mean()))
+        errors[fixed] = worst
+    assert errors[True] < 1.0 and errors[True] * 4 < errors[False], errors
 
 
 def test_harmonise_rejects_an_unknown_reference(tmp_path):

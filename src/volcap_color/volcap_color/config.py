@@ -99,6 +99,10 @@ class HarmoniseConfig:
     register_views: bool = setting(True, 'hashgrid: E also learns a small rigid correction of each view (rotation '
                                    'about its centre, translation), so misregistration between views is not '
                                    'taken for texture or colour', )
+    crosstalk_from_chart: bool = setting(True, 'hashgrid, where the calibration has a chart colour model for '
+                                         'every camera: each camera response in E mixes the channels as its chart '
+                                         'model says the camera does (crosstalk), fixed rather than learnt, so D '
+                                         'undoes it', )
     head_width: int = setting(64, 'hidden width of the hash grid field\'s MLP (hashgrid)', 4, 1024)
     mapper_input: str = setting('field', 'what each D is trained to map: field (ours: E\'s colour of the point as '
                                 'this camera records it, so input and target are the same surface colour and D '

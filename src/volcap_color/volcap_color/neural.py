@@ -83,6 +83,23 @@ def pixel_footprint_mm(views: list[View]) -> float:
     return max(MIN_CELL_MM, float(np.median(sizes)))
 
 
+def _set_crosstalk(field_model: nn.Module, cfg: HarmoniseConfig, cameras: list[str], centres: dict,
+                   chart_models: dict | None) -> dict | None:
+    """Give a hash-grid E's camera responses the crosstalk each camera's chart model measured
+    (``crosstalk_from_chart``, where every camera has one); returns it per camera (None without)."""
+    if not (cfg.crosstalk_from_chart and isinstance(field_model, HashGridField) and chart_models
+            and all(c in chart_models for c in cameras)):
+        return None
+    matrices = {c: chart_crosstalk(chart_models[c]) for c in cameras}
+    index = field_model.camera_index(torch.as_tensor(np.stack([centres[c] for c in cameras]),
+                                                     device=field_model.centres.device)).tolist()
+    fixed = np.tile(np.eye(3), (len(field_model.centres), 1, 1))
+    for c, i in zip(cameras, index):
+        fixed[i] = matrices[c]
+    field_model.response.set_crosstalk(fixed)
+    return matrices
+
+
 def _field_for(samples: SurfaceSamples, cfg: HarmoniseConfig, cell_mm: float = 4.0) -> nn.Module:
     centres = np.unique(samples.centres, axis=0)
     camera_std = np.maximum(centres.std(0), 1e-3) if len(centres) > 1 else np.ones(3, np.float32)
@@ -268,6 +285,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     t = lambda a: torch.as_tensor(a, device=device)
     cell_mm = cfg.grid_cell_mm or pixel_footprint_mm([v for views in train_sets for v in views if v.name in cameras])
     field_model = _field_for(samples, cfg, cell_mm).to(device)
+    crosstalk = _set_crosstalk(field_model, cfg, cameras, centres, chart_models)
     on = None if surface is None else dict(surface.settings)        # what the networks are trained on
     done = _finished(out_dir / FIELD_FILE, cfg, resume, device, on)
     if done:
@@ -303,6 +321,8 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         mine = pixels.select(rest[pixels.camera[rest] == i][:cfg.mapper_points])
         torch.manual_seed(cfg.seed + 1 + i)
         mapper = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, cfg.mapper_form).to(device)
+        if crosstalk is not None and cfg.mapper_form == 'gain':
+            mapper.unmix.copy_(torch.as_tensor(np.linalg.inv(crosstalk[cam]), dtype=torch.float32))
         done = _finished(out_dir / f'{cam}.mapper.pt', cfg, resume, device, on)
         if done:
             mapper.load_state_dict(done['state'])
@@ -337,6 +357,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         'cameras': cameras, 'reference': cfg.reference, 'anchor': anchor, 'device': str(device), 'bf16': bf16,
         'anchor_gains': None if reference.gains is None else reference.gains.tolist(),
         'threads': torch.get_num_threads(), 'field_samples': len(samples), 'mapper_samples': fits,
+        'crosstalk': None if crosstalk is None else {c: m.round(4).tolist() for c, m in crosstalk.items()},
         'field': asdict(field_result), 'field_error': e_error, 'grid_cell_mm': cell_mm, 'surface': surface_report,
         'registration': registration_report(field_model, cameras, centres), 'mappers': {c: asdict(r) for c, r in
                                                                            mapper_results.items()},
@@ -409,6 +430,24 @@ def chart_models(calibration) -> dict:
     """The calibration's chart colour models by camera (cameras without one are left out)."""
     from volcap_core.color import ColorModel
     return {c: ColorModel.from_dict(cam.color) for c, cam in calibration.cameras.items() if cam.color}
+
+
+def chart_crosstalk(model) -> np.ndarray:
+    """The channel crosstalk a chart colour model says its camera has: (3, 3), rows summing to 1.
+
+    The chart model maps the camera's linear colour to the true one, locally ``A``; the camera is
+    then ``A^-1 = M diag(d)``, crosstalk ``M`` after per-channel gains ``d`` (exposure, white
+    balance, the light's colour). Rows of ``M`` summing to 1 fix the split: ``d^-1 = A 1``. ``A`` is
+    the model's Jacobian at mid grey, so any linear-light model form serves. The identity for the
+    paper's diagonal (no crosstalk) or a model that is not invertible there."""
+    if model.method == 'paper_diagonal':
+        return np.eye(3)
+    grey, step = np.full((1, 3), 0.18), 1e-3
+    base = model.apply_linear(grey)[0]
+    jac = np.stack([(model.apply_linear(grey + step * np.eye(3)[j])[0] - base) / step for j in range(3)], axis=1)
+    if not np.all(np.isfinite(jac)) or np.linalg.cond(jac) > 1e3:
+        return np.eye(3)
+    return np.linalg.inv(jac) @ np.diag(jac @ np.ones(3))
 
 
 @dataclass

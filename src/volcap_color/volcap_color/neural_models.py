@@ -82,7 +82,9 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     mappers = {}
     for cam in manifest['cameras']:
         m = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, cfg.mapper_form).to(dev)
-        m.load_state_dict(torch.load(models_dir / f'{cam}.mapper.pt', map_location=dev, weights_only=False)['state'])
+        mapper_state = torch.load(models_dir / f'{cam}.mapper.pt', map_location=dev, weights_only=False)['state']
+        mapper_state.setdefault('unmix', torch.eye(3, device=dev))     # mappers written before the crosstalk
+        m.load_state_dict(mapper_state)
         m.eval()
         mappers[cam] = m
     centres = {c: np.asarray(v, np.float32) for c, v in manifest['centres'].items()}

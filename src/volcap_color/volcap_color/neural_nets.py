@@ -165,12 +165,16 @@ class CameraResponse(nn.Module):
     whole gamut, also for colours it did not see. Deliberately no more: a tilt of the fall-off
     or a full 3x3 matrix would also take up the scene's own lighting, which differs from view
     to view (on rgbd_box: 3.54 -> 2.85 CIEDE2000 to the truth without the tilt, 2.56 -> 2.34
-    with gains instead of the matrix)."""
+    with gains instead of the matrix). Where a chart measured each camera's channel crosstalk,
+    it is applied after the gains, fixed (``set_crosstalk``)."""
 
     def __init__(self, cameras: int, knots: int = 24):
         super().__init__()
         self.knots = knots
         self.gains = nn.Parameter(torch.ones(cameras, 3))
+        # each camera's channel crosstalk, applied after the gains; fixed, not learnt (see
+        # ``set_crosstalk``): the identity unless a chart measured it
+        self.register_buffer('crosstalk', torch.eye(3).repeat(cameras, 1, 1))
         self.falloff = nn.Parameter(torch.zeros(cameras, 3))        # x^2, y^2, r^4
         edges = torch.linspace(0.0, 1.0, max(knots, 1) + 1)
         srgb = linear_to_srgb(edges)
@@ -186,12 +190,23 @@ class CameraResponse(nn.Module):
         f = self.falloff[camera]
         fall = 1.0 + (f[:, :2] * u2).sum(-1, keepdim=True) + f[:, 2:3] * r2 * r2
         x = self.gains[camera] * linear * fall
+        x = torch.einsum('nij,nj->ni', self.crosstalk[camera], x)
         if self.knots == 0:
             return x.clamp(1e-6, 1.0) ** torch.exp(self.tone[camera])
         # the tone curve: sum of the segments' slopes times how much of each segment x covers
         slope = nn.functional.softplus(self.tone[camera])                 # N, 3, K
         pos = x.clamp(0.0, 1.0)[..., None] * self.knots - torch.arange(self.knots, device=x.device)
         return ((pos.clamp(0.0, 1.0) * slope).sum(-1) / self.knots).clamp(0.0, 1.0)
+
+    def set_crosstalk(self, matrices) -> None:
+        """Fix each camera's channel crosstalk, (cameras, 3, 3) with rows summing to 1 (grey stays
+        grey; the gains keep exposure and white balance). A matrix learnt with the field would also
+        take up the scene's lighting as it differs from view to view (the docstring above); one
+        measured on a chart under the studio's light cannot (``crosstalk_from_chart``)."""
+        m = torch.as_tensor(np.asarray(matrices, np.float32), device=self.crosstalk.device)
+        if m.shape != self.crosstalk.shape or not torch.isfinite(m).all():
+            raise ValueError(f'crosstalk must be finite {tuple(self.crosstalk.shape)}, got {tuple(m.shape)}')
+        self.crosstalk.copy_(m)
 
     def unclipped(self, linear: torch.Tensor, camera: torch.Tensor, xy: torch.Tensor, iterations: int = 16
                   ) -> torch.Tensor:
@@ -308,7 +323,14 @@ class CaptureMapper(nn.Module):
       before 2026-12-06): starts as the identity too; a deep ReLU stack learning the whole
       mapping stalled at 15 levels RMS with greyed-out colours (rgbd_box, docs/color.md).
     - ``none``: the paper's, the whole mapping with a sigmoid output (folders written before
-      the skip)."""
+      the skip).
+
+    ``unmix`` (gain form): a fixed 3x3 applied to the linear colour before the gains, the inverse
+    of the camera's channel crosstalk where a chart measured it (``CameraResponse.set_crosstalk``):
+    colour-dependent gains from a small MLP cannot represent a matrix's inverse (a three-camera
+    sphere with 10 % crosstalk: 3-4 a*b* units off the truth with it learnt, ``test_neural``),
+    and once it is undone what is left of the camera is per channel again. The identity
+    otherwise."""
 
     def __init__(self, width: int = 128, layers: int = 8, form: str = 'gain'):
         super().__init__()
@@ -321,6 +343,7 @@ class CaptureMapper(nn.Module):
         if form != 'none':
             nn.init.zeros_(self.rgb.weight)
             nn.init.zeros_(self.rgb.bias)
+        self.register_buffer('unmix', torch.eye(3))
 
     def forward(self, rgb: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
         h = torch.cat([rgb, xy], dim=-1)
@@ -328,7 +351,7 @@ class CaptureMapper(nn.Module):
             h = torch.relu(layer(h))
         out = self.rgb(h)
         if self.form == 'gain':
-            mapped = linear_to_srgb(srgb_to_linear(rgb) * torch.exp(out))
+            mapped = linear_to_srgb(srgb_to_linear(rgb) @ self.unmix.T * torch.exp(out))
             # trained on the colour as mapped (a loss on a clipped output has no gradient past
             # white); applied, clipped to the image's range
             return mapped if self.training else mapped.clamp(0.0, 1.0)
