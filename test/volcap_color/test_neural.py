@@ -226,8 +226,8 @@ def test_the_papers_field_still_trains(tmp_path):
 
 
 def test_the_reference_is_anchored_to_the_charts_or_grey_world(tmp_path):
-    """With a chart model per camera the reference is each camera's view through its chart
-    model, averaged: a cast every camera shares (here the charts say the truth is 20 % less
+    """With a chart model per camera the reference is anchored to each camera's view through its
+    chart model, averaged: a cast every camera shares (here the charts say the truth is 20 % less
     red than every camera records) is taken out; without charts ``grey_world`` balances the
     scene average; asking for charts that the calibration lacks is a clear error."""
     from volcap_color.neural_train import Reference
@@ -244,6 +244,11 @@ def test_the_reference_is_anchored_to_the_charts_or_grey_world(tmp_path):
     from volcap_core.color import srgb_to_linear
     ratio = srgb_to_linear(charted).mean(0) / srgb_to_linear(plain).mean(0)
     assert ratio == pytest.approx([0.8, 1.0, 1.0], abs=0.02)
+    # harmonise's own reference: the average camera through the one 3x3 that takes it onto the
+    # charts' average (here the charts' shared cast), at the cameras' own exposure
+    anchor = np.asarray(harm.report['anchor_matrix'])
+    assert anchor / anchor[1, 1] == pytest.approx(np.diag([0.8, 1.0, 1.0]), abs=0.03)
+    assert anchor[1, 1] == pytest.approx(1.0, abs=0.1)
     grey = harmonise(sets, list(GAINS), replace(cfg, anchor='grey_world'), tmp_path / 'grey', progress=False)
     assert grey.report['anchor'] == 'grey_world' and len(grey.report['anchor_gains']) == 3
     with pytest.raises(ValueError, match='no chart colour model for cam1'):

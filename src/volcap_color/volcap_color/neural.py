@@ -54,7 +54,19 @@ from .neural_live import _mapper_error, export_live
 from .neural_models import CHECKPOINT, FIELD_FILE, MANIFEST, Harmonisation
 from .neural_nets import CaptureMapper, ColorField, HashGridField, RegisteredField
 from .neural_samples import SurfaceSamples, training_samples
-from .neural_train import Reference, TrainResult, _Call, _save_atomic, field_color, grey_world_gains, predict, torch_device, train, use_bf16
+from .neural_train import (
+    Reference,
+    TrainResult,
+    _Call,
+    _save_atomic,
+    chart_anchor_matrix,
+    field_color,
+    grey_world_gains,
+    predict,
+    torch_device,
+    train,
+    use_bf16,
+)
 
 SURFACE_KEPT = 0.5       # a camera with fewer of its pixels on the fused surface than this is reported
 TEXTURE_KEPT = 0.9       # a D keeping less of its pixels' L* spread or saturated chroma is reported
@@ -311,8 +323,10 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     held_samples = pixels.select(held)
     e_error = field_error(field_model, held_samples, cameras, bf16)
 
-    reference = Reference(field_model, np.stack([centres[c] for c in names]), bf16,
-                          [chart_models[c] for c in names] if anchor == 'chart' else None)
+    reference = Reference(field_model, np.stack([centres[c] for c in names]), bf16)
+    if anchor == 'chart':
+        reference.matrix = chart_anchor_matrix(reference, [chart_models[c] for c in names],
+                                               t(samples.points[:200_000]))
     if anchor == 'grey_world':
         reference.gains = grey_world_gains(reference, t(samples.points[:200_000]))
     mappers, mapper_results, fits, d_error, texture = {}, {}, {}, {}, {}
@@ -356,6 +370,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     report = {
         'cameras': cameras, 'reference': cfg.reference, 'anchor': anchor, 'device': str(device), 'bf16': bf16,
         'anchor_gains': None if reference.gains is None else reference.gains.tolist(),
+        'anchor_matrix': None if reference.matrix is None else reference.matrix.round(5).tolist(),
         'threads': torch.get_num_threads(), 'field_samples': len(samples), 'mapper_samples': fits,
         'crosstalk': None if crosstalk is None else {c: m.round(4).tolist() for c, m in crosstalk.items()},
         'field': asdict(field_result), 'field_error': e_error, 'grid_cell_mm': cell_mm, 'surface': surface_report,
