@@ -128,8 +128,9 @@ class HarmoniseConfig:
                                       'at the camera\'s affine map onto the reference (0: the paper, D sees the '
                                       'subject only)', 0.0, 4.0)
     reference: str = setting('mean', 'camera whose colours D reproduces, or mean (E averaged over every camera)')
-    anchor: str = setting('auto', 'what makes the reference true: chart (each camera\'s view through its chart '
-                          'colour model before averaging: absolute colour), grey_world (one white balance making '
+    anchor: str = setting('auto', 'what makes the reference true: chart (the average camera through the one 3x3 '
+                          'that takes it onto the average of the cameras\' views through their chart colour models, '
+                          'at the cameras\' exposure: absolute colour), grey_world (one white balance making '
                           'the scene average neutral), none; auto: chart when the calibration has a chart model '
                           'for every camera, else none', choices=('auto', 'chart', 'grey_world', 'none'))
     lut_colors: int = setting(17, 'live form: colour nodes per axis', 2, 65, option='--lut-colours')
