@@ -301,7 +301,7 @@ def test_d_undoes_the_crosstalk_the_charts_measured(tmp_path):
             rgb = view.color.reshape(-1, 3)[ok] / 255.0
             u = view.camera.pixel_rays()[..., :2].reshape(-1, 2)
             vignette = (1.0 - 0.25 * np.sum((u / np.abs(u).max(0)) ** 2, axis=1) / 2)[ok]
-            true_lin = srgb_to_linear(rgb) @ charts[view.name].matrix.T / vignette[:, None]
+            true_lin = charts[view.name].apply_linear(srgb_to_linear(rgb)) / vignette[:, None]
             mapped = harm.map_colors(view.name, rgb, xy)
             # the charts' reference is the albedo itself; a* b* carry what the mixing does
             worst = max(worst, float(np.abs(srgb_to_lab(mapped) - srgb_to_lab(
@@ -337,6 +337,15 @@ def test_models_written_before_the_color_spelling_still_load(trained, tmp_path):
     report['config'].pop('mapper_form')
     (old / 'manifest.json').write_text(json.dumps(report))
     assert {m.form for m in load_harmonisation(old).mappers.values()} == {'logit'}
+    # and one from before the charts' crosstalk: E's response and D without their fixed matrices
+    report['config']['mapper_form'] = harm.config.mapper_form
+    (old / 'manifest.json').write_text(json.dumps(report))
+    for name, key in (('field.pt', 'response.crosstalk'), *((f'{c}.mapper.pt', 'unmix') for c in GAINS)):
+        saved = torch.load(old / name, weights_only=False)
+        del saved['state'][key]
+        torch.save(saved, old / name)
+    loaded = load_harmonisation(old)
+    assert np.allclose(loaded.map_colors('cam1', rgb, xy), harm.map_colors('cam1', rgb, xy), atol=1e-5)
 
 
 def test_the_hash_grid_field_trains_deterministically_and_resumes(tmp_path):
@@ -515,3 +524,14 @@ def test_no_crosstalk_leaves_the_responses_and_d_exact_under_bf16_autocast():
             h = torch.relu(layer(h))
         expected = linear_to_srgb(srgb_to_linear(rgb) * torch.exp(mapper.rgb(h))).clamp(0.0, 1.0)
     assert torch.equal(mapped, expected)
+    # with crosstalk the mixing stays in fp32 too (bf16 would be 2^-9 of the colour off)
+    unmix = np.linalg.inv(np.asarray(CROSSTALK['cam1']))
+    with torch.no_grad():
+        response.set_crosstalk(np.stack([np.asarray(CROSSTALK[c], np.float32) for c in GAINS]))
+        mapper.unmix.copy_(torch.as_tensor(unmix, dtype=torch.float32))
+        plain = response(linear, camera, xy)
+        with torch.autocast('cpu', dtype=torch.bfloat16):
+            assert torch.equal(response(linear, camera, xy), plain)
+            unmixed = torch.as_tensor(srgb_to_linear(rgb).double().numpy() @ unmix.T, dtype=torch.float32)
+            expected = linear_to_srgb(unmixed * torch.exp(mapper.rgb(h))).clamp(0.0, 1.0)
+            assert torch.allclose(mapper(rgb, xy), expected, rtol=0, atol=1e-5)

@@ -75,15 +75,16 @@ def load_harmonisation(models_dir: str | Path, device: str = 'cpu') -> Harmonisa
     dev = torch_device(device)
     state = torch.load(models_dir / FIELD_FILE, map_location=dev, weights_only=False)['state']
     field_model = field_from_state(state, cfg).to(dev)
-    if isinstance(field_model, HashGridField):      # fields written before the views' registration
+    if isinstance(field_model, HashGridField):      # fields written before the views' registration / crosstalk
         state.setdefault('registration', torch.zeros_like(field_model.registration))
+        state.setdefault('response.crosstalk', field_model.response.crosstalk.clone())
     field_model.load_state_dict(state)
     field_model.eval()
     mappers = {}
     for cam in manifest['cameras']:
         m = CaptureMapper(cfg.mapper_width, cfg.mapper_layers, cfg.mapper_form).to(dev)
         mapper_state = torch.load(models_dir / f'{cam}.mapper.pt', map_location=dev, weights_only=False)['state']
-        mapper_state.setdefault('unmix', torch.eye(3, device=dev))     # mappers written before the crosstalk
+        mapper_state.setdefault('unmix', m.unmix.clone())     # mappers written before the crosstalk
         m.load_state_dict(mapper_state)
         m.eval()
         mappers[cam] = m

@@ -227,10 +227,10 @@ def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.
     patches under the studio's lights) stays out of it: averaging eight charts' corrections put
     that error into the reference's every colour differently (the synthetic studio, seed 7: the
     neural method 1.48 CIEDE2000 from the truth that way, docs/benchmarks.md)."""
-    plain = srgb_to_linear(Reference(reference.field_model, reference.centres, reference.bf16)(points)
-                           .cpu().numpy().astype(np.float64))
-    charted = srgb_to_linear(Reference(reference.field_model, reference.centres, reference.bf16, chart_models)(points)
-                             .cpu().numpy().astype(np.float64))
+    views = reference._views(points)               # E evaluated once for both averages
+    plain, charted = (srgb_to_linear(Reference(reference.field_model, reference.centres, reference.bf16, models)
+                                     ._combine(views, points.device).cpu().numpy().astype(np.float64))
+                      for models in (None, chart_models))
     ok = np.all((plain > 0.002) & (plain < 0.98) & (charted > 0.002) & (charted < 0.98), axis=1)
     if ok.sum() < 100:
         raise BadInput(f'only {int(ok.sum())} surface colours are neither black nor clipped: too few to anchor '
