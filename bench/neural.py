@@ -51,7 +51,16 @@ BASELINES = ('reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'moulon')
 def _row(rows: dict, name: str) -> dict:
     s = rows.get(name) or {}
     return {k: s.get(k) for k in ('de2000_mean', 'psnr_mean', 'truth_de2000', 'truth_de2000_exposure',
-                                  'chroma_before', 'chroma_after')}
+                                  'chroma_before', 'chroma_after', 'truth_per_camera')}
+
+
+def _exposures(m: dict, name: str) -> str:
+    """The range of a method's per-camera exposure against the truth (``truth_scores``)."""
+    per = (m.get(name) or {}).get('truth_per_camera') or {}
+    if not per:
+        return '-'
+    e = [v['exposure'] for v in per.values()]
+    return f'{min(e):.3f}-{max(e):.3f}'
 
 
 def real_texture(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = SurfaceConfig()) -> dict:
@@ -304,7 +313,9 @@ def main() -> int:
               f"{_f(m['volcap_chart_free']['truth_de2000'])}, untouched {_f(m['original']['truth_de2000'])}); "
               f"pairwise {_f(m['neural']['de2000_mean'])} (floor {_f(m['true_colours']['de2000_mean'])}, target <= "
               f"floor + 0.3); saturated chroma {_f(m['neural']['chroma_after'], 1)} vs truth's "
-              f"{_f(m['true_colours']['chroma_after'], 1)} (target within 10 %){_on_surface(r)}", flush=True)
+              f"{_f(m['true_colours']['chroma_after'], 1)} (target within 10 %); each camera's exposure against the "
+              f"truth: neural {_exposures(m, 'neural')}, gain model {_exposures(m, 'volcap_chart_free')}"
+              f"{_on_surface(r)}", flush=True)
     result['single_view_floor'] = []
     for seed in args.single_view_floor:
         r = single_view_floor(seed, out, cfg)
@@ -338,7 +349,9 @@ def main() -> int:
         print(f"studio seed {seed}: harmonise (demo's short run) {r['harmonise_seconds']:.0f} s (target <= 180), "
               f"anchor {r['anchor']}; neural pairwise {_f(m['neural']['de2000_mean'])} vs best other "
               f"{best_pair[0]:.2f} ({best_pair[1]}); truth {_f(m['neural']['truth_de2000'])} vs best other "
-              f"{best_truth[0]:.2f} ({best_truth[1]}); untouched truth {_f(m['original']['truth_de2000'])}"
+              f"{best_truth[0]:.2f} ({best_truth[1]}); untouched truth {_f(m['original']['truth_de2000'])}; "
+              f"true colours' pairwise (the floor) {_f(m['true_colours']['de2000_mean'])}; each camera's exposure "
+              f"against the truth: neural {_exposures(m, 'neural')}, chart-free {_exposures(m, 'volcap_chart_free')}"
               f"{_on_surface(r)}", flush=True)
     if args.frames_seeds:
         result['live'] = live_form(out / f'frames_seed{args.frames_seeds[0]}')

@@ -150,6 +150,32 @@ def test_truth_and_chroma_see_what_pairwise_scores_cannot():
     assert scores['untouched']['saturated_pixels'] > 1000
 
 
+def test_truth_per_camera_names_the_camera_a_method_made_too_bright():
+    """One camera mapped 10 % too bright in linear light: the shared 3x3 splits the difference,
+    and the per-camera exposures keep the 10 % between the two cameras; untouched, both read 1."""
+    from volcap_color.correspondence import Matches
+    from volcap_core.color import linear_to_srgb, srgb_to_linear
+    from volcap_eval.color import truth_scores
+    rng = np.random.default_rng(3)
+    srgb = linear_to_srgb(0.02 + 0.6 * rng.random((3000, 3)) ** 2)
+    matches = {('cam0', 'cam1'): Matches('cam0', 'cam1', np.zeros((3000, 2), np.int32), np.zeros((3000, 2), np.int32),
+                                         srgb, srgb, 0.1)}
+
+    def truth(camera, colors, pixels):
+        return colors
+
+    def brighter(c):
+        return linear_to_srgb(np.clip(srgb_to_linear(c) * 1.1, 0, 1))
+    untouched = truth_scores(matches, {'cam0': lambda c: c, 'cam1': lambda c: c}, truth, 2000)['truth_per_camera']
+    assert set(untouched) == {'cam0', 'cam1'} and untouched['cam0']['pixels'] == untouched['cam1']['pixels'] == 2000
+    for cam in untouched.values():
+        assert cam['exposure'] == pytest.approx(1.0, abs=0.005) and cam['de2000'] < 0.3
+    off = truth_scores(matches, {'cam0': lambda c: c, 'cam1': brighter}, truth, 2000)['truth_per_camera']
+    assert off['cam1']['exposure'] / off['cam0']['exposure'] == pytest.approx(1.1, abs=0.01)
+    assert off['cam0']['exposure'] < 1.0 < off['cam1']['exposure']
+    assert min(off['cam0']['de2000'], off['cam1']['de2000']) > 0.5
+
+
 @pytest.mark.slow
 def test_real_texture_chart_free_is_closest_to_the_true_colours(shared_data, tmp_path):
     """`volcap eval color-frames`: 8 real views of rgbd_box, each through its own colour response.

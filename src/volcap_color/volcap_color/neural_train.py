@@ -13,7 +13,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from volcap_core.color import linear_to_srgb, srgb_to_linear
+from volcap_core.color import LUMINANCE, linear_to_srgb, srgb_to_linear
 from volcap_core.errors import BadInput
 from volcap_core.files import atomic_write
 
@@ -214,9 +214,6 @@ class Reference:
             out.append(predict(_Call(lambda a, k: model.response(a, model.camera_index(k), xy[:len(a)])),
                                (latent, cam), self.bf16))
         return out
-
-
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])     # Y of linear sRGB (ITU-R BT.709)
 
 
 def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.Tensor) -> np.ndarray:

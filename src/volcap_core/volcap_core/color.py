@@ -18,6 +18,7 @@ import numpy as np
 from .color_models import METHODS
 from .errors import BadInput
 
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])     # Y of linear sRGB (ITU-R BT.709)
 ROOT_DEGREE = {'root_polynomial_2': 2, 'root_polynomial_3': 3}
 
 

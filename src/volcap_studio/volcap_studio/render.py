@@ -16,12 +16,13 @@ import numpy as np
 import open3d as o3d
 
 from volcap_core.camera import CameraModel, depth_to_millimetres
+from volcap_core.color import LUMINANCE
 from volcap_core.poses import invert, transform_points
 from volcap_core.sampling import sample_bilinear
 from volcap_studio.config import ToFModel  # noqa: F401 (re-exported: its home before config.py)
 from volcap_studio.scene import Light, SceneObject
 
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+LUMA = LUMINANCE.astype(np.float32)
 
 
 @dataclass
