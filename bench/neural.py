@@ -10,6 +10,9 @@
 - what the views allow there (``--cross-view-floor``, no training): E's held-out pixels
   scored against the one colour per surface point closest to every view's true colour, each
   camera's exposure taken out (``cross_view_floor``);
+- what a perfect harmoniser scores against rgbd_box's truth (``--exposure-floor``, no training):
+  the views are frames of one hand-held camera whose exposure changed, the truth keeps each
+  frame's, a harmoniser gives them one (``exposure_floor``);
 - the synthetic studio (8 cameras, seeds 7 and 0; rendered and calibrated from its board
   views, so the reference is anchored to the chart): ``volcap harmonise`` with the demo's
   short settings, then ``volcap eval color`` on frame sets it never saw: neural against
@@ -19,6 +22,7 @@
 
     python bench/neural.py [--out bench_out/neural] [--frames-seeds 0 1 2] [--studio-seeds 7 0]
         [--field hashgrid|paper] [--surface fused|views] [--single-view-floor 0] [--cross-view-floor 0 1 2]
+        [--exposure-floor 0 1 2]
 
 ``--surface``: where E's and D's training pixels lie (``volcap harmonise --surface``; fused, the
 default, or each view's own depth); ``bench/neural_fused_surface.py`` runs both side by side.
@@ -131,6 +135,51 @@ def image_floor(seed: int, camera: int = 2) -> dict:
     pixel = np.sqrt(sq.mean(1))
     return {'seed': seed, 'camera': view.name, 'rms_levels': float(np.sqrt(sq.mean())),
             'median_levels': float(np.median(pixel)), 'pixels': len(held)}
+
+
+def exposure_floor(seed: int) -> dict:
+    """What a perfect harmoniser scores against rgbd_box's truth. The eight views are frames of
+    one hand-held camera whose exposure changed between them, and the truth (the undistorted
+    image) keeps each frame's own; a harmoniser gives them one exposure. Each frame's exposure
+    in the true images is solved from the fitted half of the correspondences (the median log
+    ratio of luminance per pair, least squares over the pairs, geometric mean 1); the true
+    colours with those exposures divided out are then scored as every method is, on the scored
+    half (``volcap_eval.color.truth_scores``, one 3x3 shared)."""
+    from volcap_color.baselines import PixelMapping
+    from volcap_color.correspondence import find_correspondences, merge_matches
+    from volcap_color.model_choice import split_matches
+    from volcap_core.color import LUMINANCE, linear_to_srgb, srgb_to_linear
+    from volcap_eval.color import ColorEvalConfig, distorted_frame_views, truth_scores
+    folder, cfg = SHARED / 'rgbd_box', ColorEvalConfig()
+    views, responses = distorted_frame_views(folder, folder / 'intrinsics.K.txt', 8, seed)
+    cameras, sizes = [v.name for v in views], {v.name: (v.camera.width, v.camera.height) for v in views}
+    fit, scored = split_matches(merge_matches([find_correspondences(views, cfg.correspondence)], cfg.fit_min_fraction),
+                                seed=cfg.seed)
+
+    def truth(camera, colors, pixels):
+        return responses[camera].true_colors(colors, pixels, sizes[camera])
+    rows, rhs = [], []
+    for (a, b), m in fit.items():
+        ya = srgb_to_linear(truth(a, m.colors_a, m.pixels_a.astype(np.float64))) @ LUMINANCE
+        yb = srgb_to_linear(truth(b, m.colors_b, m.pixels_b.astype(np.float64))) @ LUMINANCE
+        ok = (ya > 0.01) & (yb > 0.01) & (ya < 0.9) & (yb < 0.9)
+        if ok.sum() < 50:
+            continue
+        row = np.zeros(len(cameras))
+        row[cameras.index(a)], row[cameras.index(b)] = 1.0, -1.0
+        rows.append(row * np.sqrt(ok.sum()))
+        rhs.append(np.median(np.log(ya[ok] / yb[ok])) * np.sqrt(ok.sum()))
+    scale = np.sqrt(max(len(rows), 1)) * 100.0          # the mean log exposure held at 0
+    log_e = np.linalg.lstsq(np.vstack(rows + [np.full(len(cameras), scale)]), np.array(rhs + [0.0]), rcond=None)[0]
+    exposure = dict(zip(cameras, np.exp(log_e)))
+
+    def equalised(camera):
+        size = np.asarray(sizes[camera], np.float64)
+        return PixelMapping(lambda rgb, xy: linear_to_srgb(np.clip(
+            srgb_to_linear(truth(camera, rgb, xy * size - 0.5)) / exposure[camera], 0.0, 1.0)), sizes[camera])
+    scores = truth_scores(scored, {c: equalised(c) for c in cameras}, truth, cfg.max_scored_per_pair, cfg.seed)
+    return {'seed': seed, 'exposures': {c: float(v) for c, v in exposure.items()},
+            'truth_de2000': scores['truth_de2000']}
 
 
 def cross_view_floor(seed: int, surface: SurfaceConfig = SurfaceConfig(), radius_mm: float = 0.75) -> dict:
@@ -288,6 +337,9 @@ def main() -> int:
                    help='where the training pixels lie (volcap harmonise --surface)')
     p.add_argument('--single-view-floor', type=int, nargs='*', default=[0], metavar='SEED',
                    help='rgbd_box seeds on which to fit E to one view alone, the floor of its held-out RMS')
+    p.add_argument('--exposure-floor', type=int, nargs='*', default=[0, 1, 2], metavar='SEED',
+                   help='rgbd_box seeds on which to score the true colours with each frame\'s own exposure divided '
+                        'out: what a perfect harmoniser scores against the truth (no training, seconds)')
     p.add_argument('--cross-view-floor', type=int, nargs='*', default=[0, 1, 2], metavar='SEED',
                    help='rgbd_box seeds on which to score the one colour per surface point closest to every view '
                         '(the true images; no training, seconds)')
@@ -327,6 +379,15 @@ def main() -> int:
         result['single_view_floor'][-1]['image_floor'] = r
         print(f"rgbd_box seed {seed}, the same held-out pixels of {r['camera']} from their 4 image neighbours: RMS "
               f"{r['rms_levels']:.2f} levels (median {r['median_levels']:.1f}): what the image allows", flush=True)
+    result['exposure_floor'] = []
+    for seed in args.exposure_floor:
+        r = exposure_floor(seed)
+        result['exposure_floor'].append(r)
+        e = r['exposures']
+        print(f"rgbd_box seed {seed}, the frames' own exposures in the true images {min(e.values()):.3f}-"
+              f"{max(e.values()):.3f} ({', '.join(f'{c} {v:.3f}' for c, v in e.items())}); the true colours with "
+              f"them divided out (a perfect harmoniser) score {r['truth_de2000']:.2f} CIEDE2000 against the truth",
+              flush=True)
     result['cross_view_floor'] = []
     for seed in args.cross_view_floor:
         r = cross_view_floor(seed, surface)
