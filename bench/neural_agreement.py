@@ -2,24 +2,24 @@
 further toward the cameras' agreement after D, scored pairwise and against the truth.
 
 For each studio of a ``bench/neural.py`` output folder (its rendered bag, calibration and
-trained ``volcap harmonise`` folder): one 3x3 per camera in linear light, fitted on the frame
-sets the evaluation fits on (the neural method was trained on the same ones) so that every
-correspondence's two harmonised colours meet at their mean, pulled toward the identity with
-weight ``lambda`` per pixel and with the rig's mean 3x3 held at the identity (no shared drift).
-The fit alternates ten times between the pairs' means and each camera's least-squares 3x3.
-Then scored as ``volcap eval color`` scores every method, on the frame sets it never saw:
-pairwise CIEDE2000 (paper 001's protocol) and against the truth (one 3x3 shared; one gain).
+trained ``volcap harmonise`` folder): our chart-free fit (``chart_free_fit``, one 3x3 per camera
+in linear light, the rig's mean model held at the identity, Cauchy-reweighted) run on the
+neural method's harmonised colours of the frame sets the evaluation fits on (the neural method
+was trained on the same ones), with its ridge toward the identity at ``--ridges``. Then scored
+as ``volcap eval color`` scores every method, on the frame sets it never saw: pairwise
+CIEDE2000 (paper 001's protocol) and against the truth (one 3x3 shared; one gain).
 
-A large ``lambda`` leaves the neural colours as they are; a small one lets each camera take up
+A large ridge leaves the neural colours as they are; a small one lets each camera take up
 whatever makes the views agree, the shading that changes from view to view included. This is
 what a pairwise term in D's training would trade, measured without retraining.
 
     python bench/neural_agreement.py [--out bench_out/neural] [--seeds 7 0 3 11]
-        [--lambdas 1e9 0.01 0.003 0.001]
+        [--ridges 1e6 1 0.1 0.01 0.0001]
 """
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,53 +27,31 @@ from stability import commit  # bench/ is on the path when run as a script
 
 from volcap_bringup.demo_cli import DemoConfig
 from volcap_color.baselines import PixelMapping, apply_mapping
+from volcap_color.chart_free import chart_free_fit
 from volcap_color.correspondence import cameras_in, find_correspondences, merge_matches, split_frame_sets
 from volcap_core import transport
 from volcap_core.calibration import Calibration
-from volcap_core.color import linear_to_srgb, srgb_to_linear
+from volcap_core.color import ColorModel
 from volcap_eval.color import ColorEvalConfig, neural_mappings, pair_scores, summarise, synthetic_truth, truth_scores
 from volcap_pipeline.replay import capture_views
 
 
-def _linear(mapping: PixelMapping, colors: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """The mapping's 8-bit output (as the evaluation scores it), in linear light."""
-    out = np.asarray(apply_mapping(mapping, colors, pixels.astype(np.float64)))
-    return srgb_to_linear(np.round(np.clip(out, 0.0, 1.0) * 255.0) / 255.0)
+def _harmonised(matches: dict, neural: dict[str, PixelMapping]) -> dict:
+    """``matches`` with both sides' colours replaced by the neural method's, as 8-bit sRGB (what
+    the evaluation scores)."""
+    def eight_bit(mapping, colors, pixels):
+        out = np.asarray(apply_mapping(mapping, colors, pixels.astype(np.float64)))
+        return np.round(np.clip(out, 0.0, 1.0) * 255.0) / 255.0
+    return {(a, b): replace(m, colors_a=eight_bit(neural[a], m.colors_a, m.pixels_a),
+                            colors_b=eight_bit(neural[b], m.colors_b, m.pixels_b)) for (a, b), m in matches.items()}
 
 
-def _pulled(mapping: PixelMapping, matrix: np.ndarray) -> PixelMapping:
-    """``mapping`` followed by ``matrix`` in linear light."""
-    return PixelMapping(lambda rgb, xy: linear_to_srgb(np.clip(
-        srgb_to_linear(np.asarray(mapping.apply(rgb, xy))) @ matrix, 0.0, 1.0)), mapping.size)
+def _then(mapping: PixelMapping, model: ColorModel) -> PixelMapping:
+    """``mapping`` followed by ``model`` (sRGB in, sRGB out)."""
+    return PixelMapping(lambda rgb, xy: model.apply(np.asarray(mapping.apply(rgb, xy))), mapping.size)
 
 
-def fit_agreement(pairs: list, cameras: list[str], weight: float, rounds: int = 10) -> dict[str, np.ndarray]:
-    """Per camera the 3x3 (row vectors: colour @ M) that brings each pair's two colours to
-    their mean, pulled toward the identity by ``weight`` per pixel, the rig's mean held at it."""
-    M = {c: np.eye(3) for c in cameras}
-    for _ in range(rounds):
-        xs = {c: [] for c in cameras}
-        ys = {c: [] for c in cameras}
-        for a, b, ca, cb in pairs:
-            mean = 0.5 * (ca @ M[a] + cb @ M[b])
-            xs[a].append(ca)
-            ys[a].append(mean)
-            xs[b].append(cb)
-            ys[b].append(mean)
-        fitted = {}
-        for c in cameras:
-            if not xs[c]:
-                fitted[c] = np.eye(3)
-                continue
-            x, y = np.vstack(xs[c]), np.vstack(ys[c])
-            prior = weight * len(x) * np.eye(3)
-            fitted[c] = np.linalg.solve(x.T @ x + prior, x.T @ y + prior)
-        centre = np.linalg.inv(sum(fitted.values()) / len(cameras))
-        M = {c: m @ centre for c, m in fitted.items()}
-    return M
-
-
-def studio(folder: Path, seed: int, weights: list[float]) -> dict:
+def studio(folder: Path, seed: int, ridges: list[float]) -> dict:
     bag = folder / f'studio_seed{seed}'
     rig = Calibration.load(folder / f'studio_seed{seed}.calibration.yaml')
     cfg = ColorEvalConfig(frames=DemoConfig().colour_frames)
@@ -89,24 +67,20 @@ def studio(folder: Path, seed: int, weights: list[float]) -> dict:
     neural = neural_mappings(folder / f'studio_seed{seed}.neural', [v for views in sets for v in views], cameras)[0]
     neural = neural['neural']
     truth = synthetic_truth(bag, sizes)
-    pairs = []
-    for (a, b), m in fit.items():
-        ca, cb = _linear(neural[a], m.colors_a, m.pixels_a), _linear(neural[b], m.colors_b, m.pixels_b)
-        ok = np.all((ca > 0.003) & (ca < 0.97) & (cb > 0.003) & (cb < 0.97), axis=1)   # neither clipped
-        pairs.append((a, b, ca[ok], cb[ok]))
+    harmonised = _harmonised(fit, neural)
     rows = []
-    for weight in weights:
-        M = fit_agreement(pairs, cameras, weight)
-        mappings = {c: _pulled(neural[c], M[c]) for c in cameras}
+    for ridge in ridges:
+        models = chart_free_fit(harmonised, cameras, model='matrix_3x3', reference='mean', ridge=ridge)
+        mappings = {c: _then(neural[c], models[c]) for c in cameras}
         pairwise = summarise({k: v for k, v in pair_scores(thin, mappings, cfg.max_scored_per_pair, cfg.seed).items()
                               if k in scored_keys})
         true = truth_scores(thin, mappings, truth, cfg.max_scored_per_pair, cfg.seed)
-        rows.append({'lambda': weight, 'pairwise': pairwise['de2000_mean'], 'truth': true['truth_de2000'],
-                     'truth_one_gain': true['truth_de2000_exposure'],
-                     'largest_off_identity': float(max(np.abs(m - np.eye(3)).max() for m in M.values()))})
-        print(f"studio seed {seed}, lambda {weight:g}: pairwise {rows[-1]['pairwise']:.2f}, truth "
-              f"{rows[-1]['truth']:.2f}, one gain {rows[-1]['truth_one_gain']:.2f}; the 3x3s at most "
-              f"{rows[-1]['largest_off_identity']:.3f} from the identity", flush=True)
+        off = max(float(np.abs(np.asarray(m.matrix) - np.eye(3)).max()) for m in models.values())
+        rows.append({'ridge': ridge, 'pairwise': pairwise['de2000_mean'], 'truth': true['truth_de2000'],
+                     'truth_one_gain': true['truth_de2000_exposure'], 'largest_off_identity': off})
+        print(f"studio seed {seed}, ridge {ridge:g}: pairwise {rows[-1]['pairwise']:.2f}, truth "
+              f"{rows[-1]['truth']:.2f}, one gain {rows[-1]['truth_one_gain']:.2f}; the 3x3s at most {off:.3f} "
+              f"from the identity", flush=True)
     return {'seed': seed, 'rows': rows}
 
 
@@ -114,7 +88,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--out', default='bench_out/neural', help="bench/neural.py's output folder")
     p.add_argument('--seeds', type=int, nargs='*', default=[7, 0, 3, 11])
-    p.add_argument('--lambdas', type=float, nargs='*', default=[1e9, 0.01, 0.003, 0.001])
+    p.add_argument('--ridges', type=float, nargs='*', default=[1e6, 1.0, 0.1, 0.01, 1e-4])
     args = p.parse_args()
     transport.configure()
     out = Path(args.out)
@@ -123,7 +97,7 @@ def main() -> int:
         print(f'{out} has no trained studio for seeds {missing}: run bench/neural.py --studio-seeds first',
               file=sys.stderr)
         return 2
-    result = {'commit': commit(), 'studio': [studio(out, s, args.lambdas) for s in args.seeds]}
+    result = {'commit': commit(), 'studio': [studio(out, s, args.ridges) for s in args.seeds]}
     path = out / 'bench_neural_agreement.json'
     path.write_text(json.dumps(result, indent=2))
     print(f'wrote {path}')
