@@ -161,12 +161,11 @@ def ros_context(graph):
 
 @pytest.fixture
 def procs():
-    """Node processes a test starts; each is stopped (SIGINT, then SIGKILL) afterwards."""
-    from volcap_bringup.processes import stop
+    """Node processes a test starts; all are stopped together (SIGINT, then SIGKILL) afterwards."""
+    from volcap_bringup.processes import stop_all
     started = []
     yield started
-    for p in started:
-        stop(p)
+    stop_all(started)
 
 
 # Probes subscribe reliably (EVERY_FRAME): the player sends each frame once, and a best-effort

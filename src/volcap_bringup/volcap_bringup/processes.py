@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import yaml
 
@@ -53,14 +54,25 @@ def start_node(package: str, executable: str, params: dict | None = None, env: d
 
 def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
     """SIGINT (a clean node shutdown), then SIGKILL if it does not exit in time."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
+    return stop_all([proc], timeout)[0]
+
+
+def stop_all(procs: list[subprocess.Popen], timeout: float = 10.0) -> list[int]:
+    """SIGINT to every process in the order given, then wait for them together: SIGKILL for any
+    still running ``timeout`` s after the signals. A node's clean shutdown (its DDS participant
+    leaving) takes 1-2 s on 2 cores, so stopping a rig's ten processes one after the other took
+    10-16 s; signalled together they are out in the time of the slowest."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + timeout
+    for proc in procs:
         try:
-            proc.wait(timeout)
+            proc.wait(max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
-    return proc.returncode
+    return [proc.returncode for proc in procs]
 
 
 def compose(package: str, executable: str, namespace: str = '', params: dict | None = None,

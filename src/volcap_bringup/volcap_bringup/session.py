@@ -11,8 +11,9 @@ On entry it configures the transport (volcap's Fast DDS profile), initialises rc
 one executor with a host node of its own, which publishes what the graph needs from the command
 (the calibration, latched, as calibration_service does on a rig) and answers graph queries. The
 command adds nodes it hosts (probes, the live controller, composed nodes) and starts node
-processes (``ros2 run`` style). On exit, whatever happened, it stops the processes in reverse
-start order (the source first, so no stage reports the others' absence while they stop), destroys
+processes (``ros2 run`` style). On exit, whatever happened, it signals the processes in reverse
+start order (the source first, so no stage reports the others' absence while they stop) and
+waits for them together (``processes.stop_all``), destroys
 the hosted nodes and shuts rclpy down. `volcap run`, `volcap live`, the demo, `volcap monitor`,
 `volcap view --live`, `volcap operator` and the ROS tests all use it; nodes in their own process
 use ``volcap_core.ros.run_node``.
@@ -34,7 +35,7 @@ from volcap_core.errors import GraphError
 from volcap_core.ros import make_executor
 
 from .graph import NodeSpec
-from .processes import compose, start_node, stop
+from .processes import compose, start_node, stop_all
 
 
 def spec_name(spec: NodeSpec) -> str:
@@ -85,8 +86,10 @@ class GraphSession:
 
     def close(self) -> None:
         """Stops every process (reverse start order) and hosted node, then rclpy. Idempotent."""
-        for name in reversed(list(self.processes)):
-            self.exit_codes[name] = stop(self.processes.pop(name))
+        names = list(reversed(self.processes))
+        codes = stop_all([self.processes[n] for n in names])
+        self.exit_codes.update(zip(names, codes))
+        self.processes.clear()
         for node in reversed(self.hosted):
             name = self._hosted_names.get(id(node), node.get_name())
             self.exit_codes[name] = getattr(node, 'exit_code', 0)
