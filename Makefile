@@ -82,7 +82,7 @@ test: lint web chromium
 
 # No ROS nodes, nothing slow: the algorithms, the nodes' decision classes, packaging and docs.
 test-fast: lint web
-	$(PY) -m pytest test -m 'not ros and not slow'
+	$(PY) -m pytest test -m 'not ros and not slow' -n $(TEST_WORKERS) --dist loadfile
 
 # Regenerates the parameter tables in docs/ from the config dataclasses.
 docs: $(STAMP)
