@@ -27,11 +27,13 @@ $(STAMP): requirements.txt constraints.txt tools/tf2_msgs/requirements.txt $(wil
 	  echo "installing Debian cmake, g++, python3.11-dev (to build tf2_msgs)"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq cmake g++ python3.11-dev; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	@# uv installs the same pins as pip (same index, same resolution) in 28 s from a cold cache
-	@# where pip took 160 s: torch's CUDA wheels and Open3D are 8 GB unpacked (docs/benchmarks.md).
+	@# uv installs the same pins as pip (same index, same resolution) in about a minute from a cold
+	@# cache where pip took three: torch's CUDA wheels and Open3D are 8 GB unpacked. It compiles the
+	@# bytecode as pip does: with PYTHONDONTWRITEBYTECODE set (as here) every node process would
+	@# otherwise compile numpy, torch and rclpy from source (the suite took 16 min instead of 13).
 	$(PY) -m pip install -q --disable-pip-version-check uv==$(UV_VERSION)
-	$(VENV)/bin/uv pip install -q --native-tls --python $(PY) -r requirements.txt -r tools/tf2_msgs/requirements.txt \
-	  -c constraints.txt
+	$(VENV)/bin/uv pip install -q --native-tls --compile-bytecode --python $(PY) \
+	  -r requirements.txt -r tools/tf2_msgs/requirements.txt -c constraints.txt
 	@# tf2_msgs (for /tf_static) is on no registry here: build it with the rosidl toolchain into the venv,
 	@# whose lib/ the ROS wheels already put on LD_LIBRARY_PATH.
 	@echo "building tf2_msgs into $(VENV) with rosidl (under a minute)"
