@@ -145,11 +145,10 @@ def exposure_floor(seed: int) -> dict:
     ratio of luminance per pair, least squares over the pairs, geometric mean 1); the true
     colours with those exposures divided out are then scored as every method is, on the scored
     half (``volcap_eval.color.truth_scores``, one 3x3 shared)."""
-    from volcap_color.baselines import PixelMapping
     from volcap_color.correspondence import find_correspondences, merge_matches
     from volcap_color.model_choice import split_matches
-    from volcap_core.color import LUMINANCE, linear_to_srgb, srgb_to_linear
-    from volcap_eval.color import ColorEvalConfig, distorted_frame_views, truth_scores
+    from volcap_core.color import LUMINANCE, ColorModel, srgb_to_linear
+    from volcap_eval.color import ColorEvalConfig, distorted_frame_views, truth_mapping, truth_scores
     folder, cfg = SHARED / 'rgbd_box', ColorEvalConfig()
     views, responses = distorted_frame_views(folder, folder / 'intrinsics.K.txt', 8, seed)
     cameras, sizes = [v.name for v in views], {v.name: (v.camera.width, v.camera.height) for v in views}
@@ -169,15 +168,12 @@ def exposure_floor(seed: int) -> dict:
         row[cameras.index(a)], row[cameras.index(b)] = 1.0, -1.0
         rows.append(row * np.sqrt(ok.sum()))
         rhs.append(np.median(np.log(ya[ok] / yb[ok])) * np.sqrt(ok.sum()))
-    scale = np.sqrt(max(len(rows), 1)) * 100.0          # the mean log exposure held at 0
-    log_e = np.linalg.lstsq(np.vstack(rows + [np.full(len(cameras), scale)]), np.array(rhs + [0.0]), rcond=None)[0]
+    # only differences are constrained: lstsq's minimum-norm solution holds the mean log exposure at 0
+    log_e = np.linalg.lstsq(np.vstack(rows), np.array(rhs), rcond=None)[0]
     exposure = dict(zip(cameras, np.exp(log_e)))
-
-    def equalised(camera):
-        size = np.asarray(sizes[camera], np.float64)
-        return PixelMapping(lambda rgb, xy: linear_to_srgb(np.clip(
-            srgb_to_linear(truth(camera, rgb, xy * size - 0.5)) / exposure[camera], 0.0, 1.0)), sizes[camera])
-    scores = truth_scores(scored, {c: equalised(c) for c in cameras}, truth, cfg.max_scored_per_pair, cfg.seed)
+    equalised = {c: truth_mapping(truth, c, sizes[c]).followed_by(ColorModel('matrix_3x3', np.eye(3) / exposure[c]))
+                 for c in cameras}
+    scores = truth_scores(scored, equalised, truth, cfg.max_scored_per_pair, cfg.seed)
     return {'seed': seed, 'exposures': {c: float(v) for c, v in exposure.items()},
             'truth_de2000': scores['truth_de2000']}
 

@@ -31,8 +31,7 @@ from volcap_color.chart_free import chart_free_fit
 from volcap_color.correspondence import cameras_in, find_correspondences, merge_matches, split_frame_sets
 from volcap_core import transport
 from volcap_core.calibration import Calibration
-from volcap_core.color import ColorModel
-from volcap_eval.color import ColorEvalConfig, neural_mappings, pair_scores, summarise, synthetic_truth, truth_scores
+from volcap_eval.color import ColorEvalConfig, as_8bit, neural_mappings, pair_scores, summarise, synthetic_truth, truth_scores
 from volcap_pipeline.replay import capture_views
 
 
@@ -40,15 +39,9 @@ def _harmonised(matches: dict, neural: dict[str, PixelMapping]) -> dict:
     """``matches`` with both sides' colours replaced by the neural method's, as 8-bit sRGB (what
     the evaluation scores)."""
     def eight_bit(mapping, colors, pixels):
-        out = np.asarray(apply_mapping(mapping, colors, pixels.astype(np.float64)))
-        return np.round(np.clip(out, 0.0, 1.0) * 255.0) / 255.0
+        return as_8bit(np.asarray(apply_mapping(mapping, colors, pixels.astype(np.float64))))
     return {(a, b): replace(m, colors_a=eight_bit(neural[a], m.colors_a, m.pixels_a),
                             colors_b=eight_bit(neural[b], m.colors_b, m.pixels_b)) for (a, b), m in matches.items()}
-
-
-def _then(mapping: PixelMapping, model: ColorModel) -> PixelMapping:
-    """``mapping`` followed by ``model`` (sRGB in, sRGB out)."""
-    return PixelMapping(lambda rgb, xy: model.apply(np.asarray(mapping.apply(rgb, xy))), mapping.size)
 
 
 def studio(folder: Path, seed: int, ridges: list[float]) -> dict:
@@ -71,7 +64,7 @@ def studio(folder: Path, seed: int, ridges: list[float]) -> dict:
     rows = []
     for ridge in ridges:
         models = chart_free_fit(harmonised, cameras, model='matrix_3x3', reference='mean', ridge=ridge)
-        mappings = {c: _then(neural[c], models[c]) for c in cameras}
+        mappings = {c: neural[c].followed_by(models[c]) for c in cameras}
         pairwise = summarise({k: v for k, v in pair_scores(thin, mappings, cfg.max_scored_per_pair, cfg.seed).items()
                               if k in scored_keys})
         true = truth_scores(thin, mappings, truth, cfg.max_scored_per_pair, cfg.seed)

@@ -140,3 +140,19 @@ def test_model_choice_is_the_simplest_family_that_fits_and_leaves_a_consistent_r
     choice = choose_chart_free_model(agree, cams)
     before = held_out_scores(agree, None)['de2000']
     assert choice.scores[choice.model]['de2000'] <= before * 1.02, choice.scores
+
+
+def test_a_pixel_mapping_followed_by_a_colour_model_applies_both_in_turn():
+    """``PixelMapping.followed_by``: the mapping (which may depend on the pixel) first, then the
+    model on its sRGB output; a model that doubles linear light doubles the mapping's linear output."""
+    from volcap_color.baselines import PixelMapping
+    mapping = PixelMapping(lambda rgb, xy: rgb * (0.5 + 0.5 * xy[:, :1]), (4, 2))
+    model = ColorModel('matrix_3x3', np.diag([2.0, 1.0, 0.5]))
+    rgb = np.array([[0.2, 0.4, 0.6], [0.3, 0.3, 0.3]])
+    pixels = np.array([[0, 0], [3, 1]])
+    first = mapping(rgb, pixels)
+    both = mapping.followed_by(model)(rgb, pixels)
+    assert both == pytest.approx(model.apply(first))
+    assert srgb_to_linear(both)[:, 1] == pytest.approx(srgb_to_linear(first)[:, 1])
+    assert srgb_to_linear(both)[:, 0] == pytest.approx(2 * srgb_to_linear(first)[:, 0])
+    assert first == pytest.approx(rgb * np.array([[0.5625], [0.9375]]))     # x = 0.125 and 0.875: the pixel counts

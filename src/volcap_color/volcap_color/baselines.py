@@ -11,7 +11,7 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.sparse.csgraph import shortest_path
 
-from volcap_core.color import srgb_to_linear
+from volcap_core.color import ColorModel, srgb_to_linear
 
 from .apply import pixel_centres
 from .config import CHART_FREE_MODELS, SELECTABLE_MODELS  # noqa: F401 (re-exported)
@@ -45,6 +45,10 @@ class PixelMapping:
     def __call__(self, rgb: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """sRGB (N, 3) at pixel coordinates (N, 2; x y, integers at pixel centres)."""
         return self.apply(rgb, pixel_centres(pixels[:, 0], pixels[:, 1], *self.size))
+
+    def followed_by(self, model: ColorModel) -> PixelMapping:
+        """This mapping, then ``model`` (sRGB in, sRGB out)."""
+        return PixelMapping(lambda rgb, xy: model.apply(np.asarray(self.apply(rgb, xy))), self.size)
 
 
 def apply_mapping(mapping: Mapping | PixelMapping, rgb: np.ndarray, pixels: np.ndarray) -> np.ndarray:

@@ -76,7 +76,8 @@ METHODS = ('original', 'reinhard', 'vandermonde', 'finlayson', 'brown_lowe', 'mo
            'volcap_chart', 'volcap_chart_free', 'volcap_chart_harmonised')
 
 
-def _as_8bit(rgb: np.ndarray) -> np.ndarray:
+def as_8bit(rgb: np.ndarray) -> np.ndarray:
+    """Colours as an 8-bit image holds them (what every method is scored on)."""
     return np.round(np.clip(rgb, 0.0, 1.0) * 255.0) / 255.0
 
 
@@ -88,8 +89,8 @@ def pair_scores(matches: dict[tuple[str, str], Matches], mappings: dict[str, Map
     out = {}
     for (a, b), m in matches.items():
         sel = np.arange(len(m)) if len(m) <= max_per_pair else rng.choice(len(m), max_per_pair, replace=False)
-        ca = _as_8bit(apply_mapping(mappings[a], m.colors_a[sel], m.pixels_a[sel]))
-        cb = _as_8bit(apply_mapping(mappings[b], m.colors_b[sel], m.pixels_b[sel]))
+        ca = as_8bit(apply_mapping(mappings[a], m.colors_a[sel], m.pixels_a[sel]))
+        cb = as_8bit(apply_mapping(mappings[b], m.colors_b[sel], m.pixels_b[sel]))
         mse = float(np.mean((ca - cb) ** 2))
         out[f'{a}-{b}'] = {'de2000': float(delta_e2000(ca, cb).mean()),
                            'psnr': float(10 * np.log10(1.0 / max(mse, 1e-12))), 'n': len(m)}
@@ -120,7 +121,7 @@ def chroma_kept(matches: dict[tuple[str, str], Matches], mapping: dict[str, Mapp
         keep = recorded >= SATURATED_CHROMA
         if keep.any():
             before.append(recorded[keep])
-            after.append(chroma(srgb_to_lab(_as_8bit(apply_mapping(mapping[camera], colors[keep], pixels[keep])))))
+            after.append(chroma(srgb_to_lab(as_8bit(apply_mapping(mapping[camera], colors[keep], pixels[keep])))))
     if not before:
         return {'chroma_before': None, 'chroma_after': None, 'saturated_pixels': 0}
     return {'chroma_before': float(np.concatenate(before).mean()), 'chroma_after': float(np.concatenate(after).mean()),
@@ -141,7 +142,7 @@ def truth_scores(matches: dict[tuple[str, str], Matches], mapping: dict[str, Map
     for camera, colors, pixels in _scored_rows(matches, max_per_pair, seed):
         t = truth(camera, colors, pixels)
         ok = np.all((t > 0.002) & (t < 0.998), axis=1)
-        mapped.append(srgb_to_linear(_as_8bit(apply_mapping(mapping[camera], colors[ok], pixels[ok]))))
+        mapped.append(srgb_to_linear(as_8bit(apply_mapping(mapping[camera], colors[ok], pixels[ok]))))
         true.append(srgb_to_linear(t[ok]))
         cameras.append(np.full(int(ok.sum()), camera, dtype=object))
     if not mapped or not sum(map(len, mapped)):
@@ -197,7 +198,7 @@ def chart_table(samples: dict[str, tuple[np.ndarray, np.ndarray]], mapping: dict
     for c, (measured, target) in samples.items():
         if c not in mapping or not len(measured) or isinstance(mapping[c], PixelMapping):
             continue
-        after = _as_8bit(mapping[c](measured))
+        after = as_8bit(mapping[c](measured))
         d = component_differences(after, target)
         out[c] = {'signed': d['signed'], 'abs': d['abs'], 'patch_de2000': float(delta_e2000(after, target).mean())}
     return out
@@ -302,7 +303,8 @@ def evaluate_color(bag: str | Path, calibration: Calibration, chart_samples: dic
     return report, {'views': sets[score_idx[0]], 'mappings': mappings, 'models': models, 'region_luts': luts}
 
 
-def _truth_mapping(truth: TruthFn, camera: str, size: tuple[int, int]) -> PixelMapping:
+def truth_mapping(truth: TruthFn, camera: str, size: tuple[int, int]) -> PixelMapping:
+    """``camera``'s true colours as a mapping (the `true_colours` row: a perfect harmoniser)."""
     scale = np.asarray(size, np.float64)
     return PixelMapping(lambda rgb, xy: truth(camera, rgb, xy * scale - 0.5), size)
 
@@ -316,7 +318,7 @@ def score_methods(mappings: dict[str, dict[str, Mapping]], matches: dict[tuple[s
     pairwise scores are the floor the correspondences allow (below it a method is flattening
     colours to agree, not correcting cameras)."""
     if truth is not None:
-        mappings = {**mappings, 'true_colours': {c: _truth_mapping(truth, c, size) for c, size in sizes.items()}}
+        mappings = {**mappings, 'true_colours': {c: truth_mapping(truth, c, size) for c, size in sizes.items()}}
     methods, all_pairs, pairs = {}, {}, {}
     for name in tqdm(mappings, desc='scoring methods', unit='method', disable=not progress):
         pairs[name] = pair_scores(matches, mappings[name], cfg.max_scored_per_pair, cfg.seed)
