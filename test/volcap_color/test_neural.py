@@ -244,11 +244,23 @@ def test_the_reference_is_anchored_to_the_charts_or_grey_world(tmp_path):
     from volcap_core.color import srgb_to_linear
     ratio = srgb_to_linear(charted).mean(0) / srgb_to_linear(plain).mean(0)
     assert ratio == pytest.approx([0.8, 1.0, 1.0], abs=0.02)
-    # harmonise's own reference: the average camera through the one 3x3 that takes it onto the
+    # harmonise's own reference: the average camera through the gains that take it onto the
     # charts' average (here the charts' shared cast), at the cameras' own exposure
     anchor = np.asarray(harm.report['anchor_matrix'])
     assert anchor / anchor[1, 1] == pytest.approx(np.diag([0.8, 1.0, 1.0]), abs=0.03)
     assert anchor[1, 1] == pytest.approx(1.0, abs=0.1)
+    # charts that saturate every colour (grey kept grey), as a chart's patches read under mixed
+    # lights and the board's sheen: the gains take none of it into the reference, the full 3x3
+    # (``anchor_fit='matrix_3x3'``) does; a red cast comes through both
+    from volcap_color.neural_train import chart_anchor_matrix
+    saturating = np.full((3, 3), -0.05) + np.diag([1.15] * 3)
+    cast = {c: ColorModel('matrix_3x3', np.diag([0.8, 1.0, 1.0]) @ saturating) for c in GAINS}
+    reference = Reference(harm.field, harm.reference_centres(), False)
+    gains = chart_anchor_matrix(reference, [cast[c] for c in GAINS], points, 'gains')
+    assert gains == pytest.approx(np.diag(np.diag(gains)))
+    assert np.diag(gains) / gains[1, 1] == pytest.approx([0.8, 1.0, 1.0], abs=0.02)
+    full = chart_anchor_matrix(reference, [cast[c] for c in GAINS], points, 'matrix_3x3')
+    assert full / full[1, 1] == pytest.approx(np.diag([0.8, 1.0, 1.0]) @ saturating / saturating[1, 1], abs=0.02)
     grey = harmonise(sets, list(GAINS), replace(cfg, anchor='grey_world'), tmp_path / 'grey', progress=False)
     assert grey.report['anchor'] == 'grey_world' and len(grey.report['anchor_gains']) == 3
     with pytest.raises(ValueError, match='no chart colour model for cam1'):

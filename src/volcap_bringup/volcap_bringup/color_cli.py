@@ -68,7 +68,8 @@ def cmd_harmonise(args) -> int:
 # (the paper's network sizes and encodings) are set in code only.
 HARMONISE_OPTIONS = ('field', 'points', 'field_epochs', 'field_batch', 'field_lr', 'field_lr_final', 'mapper_points',
                      'mapper_epochs', 'mapper_batch', 'mapper_lr', 'mapper_lr_final', 'mapper_input', 'mapper_width', 'mapper_layers',
-                     'gamut', 'background', 'reference', 'anchor', 'grid_levels', 'grid_log2_table', 'grid_cell_mm', 'register_views',
+                     'gamut', 'background', 'reference', 'anchor', 'anchor_fit', 'grid_levels', 'grid_log2_table',
+                     'grid_cell_mm', 'register_views',
                      'crosstalk_from_chart',
                      'edge_levels', 'lut_colors', 'lut_grid', 'seed', 'device', 'precision')
 

@@ -128,11 +128,14 @@ class HarmoniseConfig:
                                       'at the camera\'s affine map onto the reference (0: the paper, D sees the '
                                       'subject only)', 0.0, 4.0)
     reference: str = setting('mean', 'camera whose colours D reproduces, or mean (E averaged over every camera)')
-    anchor: str = setting('auto', 'what makes the reference true: chart (the average camera through the one 3x3 '
-                          'that takes it onto the average of the cameras\' views through their chart colour models, '
-                          'at the cameras\' exposure: absolute colour), grey_world (one white balance making '
-                          'the scene average neutral), none; auto: chart when the calibration has a chart model '
-                          'for every camera, else none', choices=('auto', 'chart', 'grey_world', 'none'))
+    anchor: str = setting('auto', 'what makes the reference true: chart (the average camera through the gains, '
+                          'or the 3x3 (--anchor-fit), that take it onto the average of the cameras\' views through '
+                          'their chart colour models, at the cameras\' exposure: absolute colour), grey_world (one '
+                          'white balance making the scene average neutral), none; auto: chart when the calibration '
+                          'has a chart model for every camera, else none', choices=('auto', 'chart', 'grey_world', 'none'))
+    anchor_fit: str = setting('gains', 'the chart anchor\'s form: gains (one per channel in linear light: the charts\' '
+                              'white balance) or matrix_3x3 (a full 3x3, which also takes up the saturation the '
+                              'chart models add: the form before 2026-12-07)', choices=('gains', 'matrix_3x3'))
     lut_colors: int = setting(17, 'live form: colour nodes per axis', 2, 65, option='--lut-colours')
     lut_grid: tuple[int, int] = setting((9, 5), 'live form: image nodes (x, y)', 2, 64)
     seed: int = setting(0, 'random seed', 0, 2**31 - 1)

@@ -326,7 +326,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
     reference = Reference(field_model, np.stack([centres[c] for c in names]), bf16)
     if anchor == 'chart':
         reference.matrix = chart_anchor_matrix(reference, [chart_models[c] for c in names],
-                                               t(samples.points[:200_000]))
+                                               t(samples.points[:200_000]), cfg.anchor_fit)
     if anchor == 'grey_world':
         reference.gains = grey_world_gains(reference, t(samples.points[:200_000]))
     mappers, mapper_results, fits, d_error, texture = {}, {}, {}, {}, {}

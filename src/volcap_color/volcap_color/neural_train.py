@@ -216,14 +216,24 @@ class Reference:
         return out
 
 
-def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.Tensor) -> np.ndarray:
-    """The one 3x3 in linear light that takes ``reference``'s average camera closest to the
+def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.Tensor, form: str = 'gains'
+                        ) -> np.ndarray:
+    """The matrix in linear light that takes ``reference``'s average camera closest to the
     average of the same cameras each corrected by its chart model, over ``points`` (least
-    squares; colours clipped in either left out). The reference anchored this way is absolute
-    colour, as the charts say, and the charts' own per-camera fitting error (each model a few
-    patches under the studio's lights) stays out of it: averaging eight charts' corrections put
-    that error into the reference's every colour differently (the synthetic studio, seed 7: the
-    neural method 1.48 CIEDE2000 from the truth that way, docs/benchmarks.md)."""
+    squares; colours clipped in either left out): ``form`` ``matrix_3x3``, a full 3x3, or
+    ``gains``, one gain per channel that takes grey where that 3x3 does (a diagonal matrix: the
+    charts' white balance and exposure). The reference
+    anchored this way is absolute colour, as the charts say, and the charts' own per-camera
+    fitting error (each model a few patches under the studio's lights) stays out of it:
+    averaging eight charts' corrections put that error into the reference's every colour
+    differently (the synthetic studio, seed 7: the neural method 1.48 CIEDE2000 from the truth
+    that way, docs/benchmarks.md).
+
+    Gains by default: a chart's patches under the studio's mixed lights and the board's sheen
+    read less saturated than their reference, and the chart models' matrices saturate every
+    colour to make up for it. A full 3x3 carried that into the reference: the neural method's
+    saturated chroma 6-8 % above the truth's on the synthetic studio, its colours further from
+    the truth at one shared exposure gain (docs/color.md)."""
     views = reference._views(points)               # E evaluated once for both averages
     plain, charted = (srgb_to_linear(Reference(reference.field_model, reference.centres, reference.bf16, models)
                                      ._combine(views, points.device).cpu().numpy().astype(np.float64))
@@ -232,7 +242,13 @@ def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.
     if ok.sum() < 100:
         raise BadInput(f'only {int(ok.sum())} surface colours are neither black nor clipped: too few to anchor '
                        'the reference to the charts (use --anchor none or grey_world)')
+    if form not in ('gains', 'matrix_3x3'):
+        raise ValueError(f'unknown chart anchor form {form!r} (gains, matrix_3x3)')
     matrix = np.linalg.lstsq(plain[ok], charted[ok], rcond=None)[0].T
+    if form == 'gains':
+        # the gains that take grey where the full fit takes it: least-squares gains per channel
+        # would take up part of the saturation too, as the channels of coloured surfaces differ
+        matrix = np.diag(matrix.sum(1))
     # the cameras' exposure stays: under the studio's lights a chart reads half as bright as its
     # reference, and a reference twice as bright as every camera clips what they recorded
     # below white (seed 7: 1.54 CIEDE2000 from the truth unscaled)
