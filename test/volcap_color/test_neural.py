@@ -290,8 +290,9 @@ def test_d_undoes_the_crosstalk_the_charts_measured(tmp_path):
     """Cameras whose channels mix differently (10 %): E's gains and tone curves cannot say how,
     and D's colour-dependent gains cannot undo a matrix, so without the charts' crosstalk every
     camera but cam0 (which has none) keeps its mixing (3-4 a* b* units off the truth). With it
-    E's responses hold the mixing, D undoes it first, and every camera maps onto the truth
-    (the albedo, since the reference is the charts') several times closer."""
+    E's responses hold the mixing, the reference leaves it out, D undoes it first, and every
+    camera maps onto the truth (the albedo, since the reference is the charts') several times
+    closer."""
     from volcap_core.color import ColorModel, srgb_to_lab, srgb_to_linear
     sets = [[_view(n, e, 0.15 * f, crosstalk=CROSSTALK[n]) for n, e in EYES.items()] for f in range(2)]
     charts = {c: ColorModel('matrix_3x3', np.linalg.inv(np.asarray(CROSSTALK[c]) @ np.diag(GAINS[c])))
@@ -302,6 +303,8 @@ def test_d_undoes_the_crosstalk_the_charts_measured(tmp_path):
         harm = harmonise(sets[:1], list(GAINS), replace(cfg, crosstalk_from_chart=fixed), tmp_path / str(fixed),
                          progress=False, chart_models=charts)
         assert (harm.report['crosstalk'] is not None) == fixed
+        # the reference (gains on the charts) is the cameras without the mixing the charts measured
+        assert harm.report['reference_unmixed'] == fixed
         if fixed:
             assert np.asarray(harm.report['crosstalk']['cam1']) == pytest.approx(np.asarray(CROSSTALK['cam1']), abs=1e-3)
         worst = 0.0

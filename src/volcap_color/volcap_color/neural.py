@@ -325,6 +325,9 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
 
     reference = Reference(field_model, np.stack([centres[c] for c in names]), bf16)
     if anchor == 'chart':
+        # with gains the reference keeps no camera's mixing: the gains cannot take it out as the
+        # 3x3 did (and as the charts do), and the truth a chart stands for has none
+        reference.unmixed = cfg.anchor_fit == 'gains' and crosstalk is not None
         reference.matrix = chart_anchor_matrix(reference, [chart_models[c] for c in names],
                                                t(samples.points[:200_000]), cfg.anchor_fit)
     if anchor == 'grey_world':
@@ -371,6 +374,7 @@ def harmonise(train_sets: list[list[View]], cameras: list[str], cfg: HarmoniseCo
         'cameras': cameras, 'reference': cfg.reference, 'anchor': anchor, 'device': str(device), 'bf16': bf16,
         'anchor_gains': None if reference.gains is None else reference.gains.tolist(),
         'anchor_matrix': None if reference.matrix is None else reference.matrix.round(5).tolist(),
+        'reference_unmixed': reference.unmixed,
         'threads': torch.get_num_threads(), 'field_samples': len(samples), 'mapper_samples': fits,
         'crosstalk': None if crosstalk is None else {c: m.round(4).tolist() for c, m in crosstalk.items()},
         'field': asdict(field_result), 'field_error': e_error, 'grid_cell_mm': cell_mm, 'surface': surface_report,

@@ -183,7 +183,10 @@ class CameraResponse(nn.Module):
         if knots == 0:      # a power law per channel instead, starting at 1 / 2.2
             self.tone = nn.Parameter(torch.full((cameras, 3), math.log(1 / 2.2)))
 
-    def forward(self, linear: torch.Tensor, camera: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    def forward(self, linear: torch.Tensor, camera: torch.Tensor, xy: torch.Tensor, mixed: bool = True
+                ) -> torch.Tensor:
+        """The camera's recording of ``linear``; ``mixed=False`` leaves its crosstalk out (the
+        camera as it would record without the mixing a chart measured: a reference's view)."""
         u = (xy - 0.5) * 2.0                                              # -1 .. 1 edge to edge
         u2 = u * u
         r2 = u2.sum(-1, keepdim=True) / 2.0                               # 1 at the corners
@@ -192,7 +195,8 @@ class CameraResponse(nn.Module):
         x = self.gains[camera] * linear * fall
         # products and a sum, not a matrix product: autocast would run that in bf16 and round
         # every colour to 8 bits of mantissa (rgbd_box, seed 0: E's held-out RMS 17.8 -> 20.0)
-        x = (self.crosstalk[camera] * x[:, None, :]).sum(-1)
+        if mixed:
+            x = (self.crosstalk[camera] * x[:, None, :]).sum(-1)
         if self.knots == 0:
             return x.clamp(1e-6, 1.0) ** torch.exp(self.tone[camera])
         # the tone curve: sum of the segments' slopes times how much of each segment x covers

@@ -164,13 +164,16 @@ class Reference:
     """The colour every D maps its camera onto: E's colour of the point as each of ``centres``
     records it at its image centre, averaged; with ``chart_models`` (one per centre, sRGB ->
     chart-corrected sRGB) each camera's view is corrected by its chart model first (absolute
-    colour); with ``gains`` a white balance in linear light is applied to the average."""
+    colour); with ``gains`` a white balance in linear light is applied to the average.
+    ``unmixed``: each camera's view without the channel crosstalk its chart measured (a
+    ``HashGridField``'s responses hold it), so that the average has none of the cameras' mixing."""
     field_model: nn.Module
     centres: np.ndarray
     bf16: bool
     chart_models: list | None = None
     gains: np.ndarray | None = None
     matrix: np.ndarray | None = None       # (3, 3) applied to the average in linear light
+    unmixed: bool = False
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         return self._combine(self._views(points), points.device)
@@ -197,21 +200,23 @@ class Reference:
         balanced = np.clip(balanced, 0.0, 1.0)
         return torch.as_tensor(linear_to_srgb(balanced).astype(np.float32), device=device)
 
-    def _views(self, points: torch.Tensor):
-        """E's colour of ``points`` as each reference camera records it at its image centre; a
-        field with a shared surface colour (``HashGridField``) computes it once for all cameras."""
+    def _views(self, points: torch.Tensor, unmixed: bool | None = None):
+        """E's colour of ``points`` as each reference camera records it at its image centre
+        (``unmixed``: default the reference's own); a field with a shared surface colour
+        (``HashGridField``) computes it once for all cameras."""
         surface = getattr(self.field_model, 'surface_color', None)
         if surface is None:
             return [field_color(self.field_model, points, c, self.bf16) for c in self.centres]
-        return self._recorded(predict(_Call(surface), (points,), self.bf16))
+        return self._recorded(predict(_Call(surface), (points,), self.bf16), unmixed)
 
-    def _recorded(self, latent: torch.Tensor) -> list[torch.Tensor]:
+    def _recorded(self, latent: torch.Tensor, unmixed: bool | None = None) -> list[torch.Tensor]:
         model = self.field_model
+        mixed = not (self.unmixed if unmixed is None else unmixed)
         xy = torch.as_tensor(CENTRE_XY, dtype=torch.float32, device=latent.device).expand(len(latent), 2)
         out = []
         for c in self.centres:
             cam = torch.as_tensor(np.asarray(c, np.float32), device=latent.device).expand(len(latent), 3)
-            out.append(predict(_Call(lambda a, k: model.response(a, model.camera_index(k), xy[:len(a)])),
+            out.append(predict(_Call(lambda a, k: model.response(a, model.camera_index(k), xy[:len(a)], mixed)),
                                (latent, cam), self.bf16))
         return out
 
@@ -234,10 +239,13 @@ def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.
     colour to make up for it. A full 3x3 carried that into the reference: the neural method's
     saturated chroma 6-8 % above the truth's on the synthetic studio, its colours further from
     the truth at one shared exposure gain (docs/color.md)."""
-    views = reference._views(points)               # E evaluated once for both averages
+    # the chart models take the cameras' recordings, mixing and all; the average they are fitted
+    # from is the reference's own (without the mixing where it is ``unmixed``)
+    recorded = reference._views(points, unmixed=False)
+    own = reference._views(points) if reference.unmixed else recorded
     plain, charted = (srgb_to_linear(Reference(reference.field_model, reference.centres, reference.bf16, models)
                                      ._combine(views, points.device).cpu().numpy().astype(np.float64))
-                      for models in (None, chart_models))
+                      for views, models in ((own, None), (recorded, chart_models)))
     ok = np.all((plain > 0.002) & (plain < 0.98) & (charted > 0.002) & (charted < 0.98), axis=1)
     if ok.sum() < 100:
         raise BadInput(f'only {int(ok.sum())} surface colours are neither black nor clipped: too few to anchor '
