@@ -485,7 +485,10 @@ class HarmoniseReport:
         out = [f"E ({m['config']['field']}{cell}): {m['field_samples']} samples, {len(m['field']['losses'])} epochs, "
                f"final loss {m['field']['losses'][-1]:.2e}, held-out pixels RMS "
                + ('-' if held is None else f'{held:.2f}') + f" levels{spread}, {m['field']['seconds']:.0f} s "
-               f"({m['device']}{', bf16' if m['bf16'] else ''}); reference: {m['reference']}, anchor {m['anchor']}"]
+               f"({m['device']}{', bf16' if m['bf16'] else ''}); reference: {m['reference']}, anchor {m['anchor']}"
+               + (f" ({m['config'].get('anchor_fit', 'matrix_3x3')}"
+                  f"{', the cameras without their crosstalk' if m.get('reference_unmixed') else ''})"
+                  if m['anchor'] == 'chart' else '')]
         reg = m.get('registration')
         if reg:
             worst = max(reg, key=lambda c: reg[c]['translation_mm'])
