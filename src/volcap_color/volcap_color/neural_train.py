@@ -227,18 +227,19 @@ def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.
     average of the same cameras each corrected by its chart model, over ``points`` (least
     squares; colours clipped in either left out): ``form`` ``matrix_3x3``, a full 3x3, or
     ``gains``, one gain per channel that takes grey where that 3x3 does (a diagonal matrix: the
-    charts' white balance and exposure). The reference
-    anchored this way is absolute colour, as the charts say, and the charts' own per-camera
-    fitting error (each model a few patches under the studio's lights) stays out of it:
-    averaging eight charts' corrections put that error into the reference's every colour
-    differently (the synthetic studio, seed 7: the neural method 1.48 CIEDE2000 from the truth
-    that way, docs/benchmarks.md).
+    charts' white balance and exposure). The reference anchored this way is absolute colour,
+    as the charts say, and the charts' own per-camera fitting error (each model a few patches
+    under the studio's lights) stays out of it: averaging eight charts' corrections put that
+    error into the reference's every colour differently (the synthetic studio, seed 7: the
+    neural method 1.48 CIEDE2000 from the truth that way, docs/benchmarks.md).
 
     Gains by default: a chart's patches under the studio's mixed lights and the board's sheen
     read less saturated than their reference, and the chart models' matrices saturate every
-    colour to make up for it. A full 3x3 carried that into the reference: the neural method's
-    saturated chroma 6-8 % above the truth's on the synthetic studio, its colours further from
-    the truth at one shared exposure gain (docs/color.md)."""
+    colour to make up for it. A full 3x3 carried that into the reference: on studio seeds 7 /
+    0 / 3 / 11 the neural method's saturated chroma 5-11 % above the truth's (4-8 % with the
+    gains), 0.94 CIEDE2000 from the truth on average under one shared 3x3 (0.92) and 1.41 at
+    one shared exposure gain (1.25; docs/benchmarks.md). With gains the reference is
+    ``unmixed`` where the charts measured crosstalk: the gains cannot take it out."""
     # the chart models take the cameras' recordings, mixing and all; the average they are fitted
     # from is the reference's own (without the mixing where it is ``unmixed``)
     recorded = reference._views(points, unmixed=False)
