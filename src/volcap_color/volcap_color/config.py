@@ -133,9 +133,10 @@ class HarmoniseConfig:
                           'their chart colour models, at the cameras\' exposure: absolute colour), grey_world (one '
                           'white balance making the scene average neutral), none; auto: chart when the calibration '
                           'has a chart model for every camera, else none', choices=('auto', 'chart', 'grey_world', 'none'))
-    anchor_fit: str = setting('gains', 'the chart anchor\'s form: gains (one per channel in linear light: the charts\' '
-                              'white balance) or matrix_3x3 (a full 3x3, which also takes up the saturation the '
-                              'chart models add: the form before 2026-12-07)', choices=('gains', 'matrix_3x3'))
+    anchor_fit: str = setting('gains', 'the chart anchor\'s form: gains (one per channel in linear light, the charts\' '
+                              'white balance, on the cameras\' views without the crosstalk their charts measured) or '
+                              'matrix_3x3 (a full 3x3 on the views as recorded, which also takes up the saturation '
+                              'the chart models add: the earlier form)', choices=('gains', 'matrix_3x3'))
     lut_colors: int = setting(17, 'live form: colour nodes per axis', 2, 65, option='--lut-colours')
     lut_grid: tuple[int, int] = setting((9, 5), 'live form: image nodes (x, y)', 2, 64)
     seed: int = setting(0, 'random seed', 0, 2**31 - 1)

@@ -240,6 +240,8 @@ def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.
     gains), 0.94 CIEDE2000 from the truth on average under one shared 3x3 (0.92) and 1.41 at
     one shared exposure gain (1.25; docs/benchmarks.md). With gains the reference is
     ``unmixed`` where the charts measured crosstalk: the gains cannot take it out."""
+    if form not in ('gains', 'matrix_3x3'):
+        raise ValueError(f'unknown chart anchor form {form!r} (gains, matrix_3x3)')
     # the chart models take the cameras' recordings, mixing and all; the average they are fitted
     # from is the reference's own (without the mixing where it is ``unmixed``)
     recorded = reference._views(points, unmixed=False)
@@ -251,8 +253,6 @@ def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.
     if ok.sum() < 100:
         raise BadInput(f'only {int(ok.sum())} surface colours are neither black nor clipped: too few to anchor '
                        'the reference to the charts (use --anchor none or grey_world)')
-    if form not in ('gains', 'matrix_3x3'):
-        raise ValueError(f'unknown chart anchor form {form!r} (gains, matrix_3x3)')
     matrix = np.linalg.lstsq(plain[ok], charted[ok], rcond=None)[0].T
     if form == 'gains':
         # the gains that take grey where the full fit takes it: least-squares gains per channel
