@@ -26,7 +26,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from stability import commit  # bench/ is on the path when run as a script
+from neural import SHARED  # bench/ is on the path when run as a script
+from stability import commit
 
 from volcap_bringup.demo_cli import DemoConfig
 from volcap_color.baselines import PixelMapping, apply_mapping
@@ -47,7 +48,7 @@ from volcap_eval.color import (
 )
 from volcap_pipeline.replay import capture_views
 
-RGBD_BOX = Path(__file__).resolve().parents[2] / 'shared' / 'data' / 'rgbd_box'
+RGBD_BOX = SHARED / 'rgbd_box'
 
 
 def _harmonised(matches: dict, neural: dict[str, PixelMapping]) -> dict:

@@ -272,6 +272,25 @@ CROSSTALK = {'cam0': np.eye(3), 'cam1': [[0.88, 0.12, 0.0], [0.0, 0.9, 0.1], [0.
              'cam2': [[0.92, 0.0, 0.08], [0.1, 0.86, 0.04], [0.0, 0.12, 0.88]]}
 
 
+def test_a_response_unmixed_is_the_same_camera_without_its_crosstalk():
+    """``CameraResponse(..., mixed=False)``, the reference's view of a camera: everything the
+    camera does (gains, fall-off, tone curve) but the crosstalk a chart measured."""
+    from volcap_color.neural_nets import CameraResponse
+    torch.manual_seed(0)
+    mixed = CameraResponse(3)
+    with torch.no_grad():
+        mixed.gains.copy_(torch.rand(3, 3) + 0.5)
+        mixed.falloff.copy_(torch.rand(3, 3) * -0.2)
+    mixed.set_crosstalk(np.stack([np.asarray(CROSSTALK[c], np.float32) for c in ('cam0', 'cam1', 'cam2')]))
+    plain = CameraResponse(3)
+    plain.load_state_dict({**mixed.state_dict(), 'crosstalk': torch.eye(3).repeat(3, 1, 1)})
+    linear, xy = torch.rand(200, 3) * 0.8, torch.rand(200, 2)
+    camera = torch.arange(200) % 3
+    assert torch.allclose(mixed(linear, camera, xy, mixed=False), plain(linear, camera, xy))
+    differs = ~torch.isclose(mixed(linear, camera, xy), plain(linear, camera, xy), atol=1e-3).all(1)
+    assert differs[camera > 0].float().mean() > 0.9 and not differs[camera == 0].any()     # cam0 has none
+
+
 def test_a_chart_models_crosstalk_is_the_camera_matrix_without_its_gains():
     """The chart model of a camera that mixes its channels by M after gains d is (M diag d)^-1;
     ``chart_crosstalk`` gives M back (rows summing to 1) for every linear-light model form."""

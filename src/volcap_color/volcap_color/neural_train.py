@@ -243,9 +243,13 @@ def chart_anchor_matrix(reference: Reference, chart_models: list, points: torch.
     if form not in ('gains', 'matrix_3x3'):
         raise ValueError(f'unknown chart anchor form {form!r} (gains, matrix_3x3)')
     # the chart models take the cameras' recordings, mixing and all; the average they are fitted
-    # from is the reference's own (without the mixing where it is ``unmixed``)
-    recorded = reference._views(points, unmixed=False)
-    own = reference._views(points) if reference.unmixed else recorded
+    # from is the reference's own (without the mixing where it is ``unmixed``, which only a
+    # ``HashGridField`` can be). E's surface colour is evaluated once for both.
+    if reference.unmixed:
+        latent = predict(_Call(reference.field_model.surface_color), (points,), reference.bf16)
+        recorded, own = reference._recorded(latent, unmixed=False), reference._recorded(latent, unmixed=True)
+    else:
+        recorded = own = reference._views(points)
     plain, charted = (srgb_to_linear(Reference(reference.field_model, reference.centres, reference.bf16, models)
                                      ._combine(views, points.device).cpu().numpy().astype(np.float64))
                       for views, models in ((own, None), (recorded, chart_models)))
