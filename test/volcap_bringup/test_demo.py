@@ -5,7 +5,7 @@ import pytest
 
 from volcap_bringup.cli import main
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.heavy(196)]
 
 
 @pytest.mark.timeout(900)
