@@ -22,7 +22,10 @@
 
     python bench/neural.py [--out bench_out/neural] [--frames-seeds 0 1 2] [--studio-seeds 7 0]
         [--field hashgrid|paper] [--surface fused|views] [--single-view-floor 0] [--cross-view-floor 0 1 2]
-        [--exposure-floor 0 1 2]
+        [--exposure-floor 0 1 2] [--crosstalk chart|truth]
+
+``--crosstalk truth``: the studio with each camera's true crosstalk in place of the charts'
+estimate (the anchor still the charts'), to bound what a better estimate would give.
 
 ``--surface``: where E's and D's training pixels lie (``volcap harmonise --surface``; fused, the
 default, or each view's own depth); ``bench/neural_fused_surface.py`` runs both side by side.
@@ -31,6 +34,7 @@ Each run's full report is written beside ``bench_neural.json``; figures: the col
 images of each run (``figures/``).
 """
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -260,7 +264,20 @@ def cross_view_floor(seed: int, surface: SurfaceConfig = SurfaceConfig(), radius
             'one_colour': summary(bound_sq), 'own_view': summary(own_sq)}
 
 
-def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = SurfaceConfig()) -> dict:
+def _true_crosstalk(bag: Path, models: dict):
+    """``chart_crosstalk`` that answers each camera's true crosstalk (the studio's ground truth)
+    for the chart models of ``models``: E's responses, the reference and D take it in place of the
+    charts' estimate; the anchor still comes from the charts."""
+    from unittest import mock
+
+    from volcap_studio.session import GroundTruth
+    truth = {c: np.asarray(v['color_response']['crosstalk'], float) for c, v in GroundTruth(bag).doc['cameras'].items()}
+    camera_of = {id(m): c for c, m in models.items()}
+    return mock.patch('volcap_color.neural.chart_crosstalk', lambda model: truth[camera_of[id(model)]])
+
+
+def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = SurfaceConfig(),
+           crosstalk: str = 'chart') -> dict:
     from volcap_bringup.demo_cli import DemoConfig
     from volcap_calib.run import CalibrateConfig
     from volcap_calib.run import run as calibrate
@@ -284,14 +301,16 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = 
     sets = capture_views(bag, rig, demo.colour_frames, False)
     models = out / f'studio_seed{seed}.neural'
     short = replace(cfg, seed=seed, **{k: v for k, v in demo.harmonise().items() if k != 'seed'})
-    trained = harmonise.run(sets, cameras_in(sets, rig), short, models, surface, progress=False, views_seconds=0.0,
-                            chart_models=neural.chart_models(rig))
+    charts = neural.chart_models(rig)
+    with _true_crosstalk(bag, charts) if crosstalk == 'truth' else contextlib.nullcontext():
+        trained = harmonise.run(sets, cameras_in(sets, rig), short, models, surface, progress=False,
+                                views_seconds=0.0, chart_models=charts)
     harmonise_s = time.perf_counter() - t0
     report = evaluate_color(bag, calibration, ColorEvalConfig(frames=demo.colour_frames), neural=models,
                             progress=False)
     (out / f'studio_seed{seed}.json').write_text(json.dumps(report, indent=1, default=float))
     rows = report['methods']
-    return {'seed': seed, 'harmonise_seconds': harmonise_s, 'anchor': trained.manifest['anchor'],
+    return {'seed': seed, 'harmonise_seconds': harmonise_s, 'anchor': trained.manifest['anchor'], 'crosstalk': crosstalk,
             'field_held_out_rms': trained.manifest['field_error']['rms_levels'], 'texture': trained.manifest['texture'],
             'surface': surface_summary(trained.manifest),
             'methods': {n: _row(rows, n) for n in rows}}
@@ -339,6 +358,9 @@ def main() -> int:
     p.add_argument('--cross-view-floor', type=int, nargs='*', default=[0, 1, 2], metavar='SEED',
                    help='rgbd_box seeds on which to score the one colour per surface point closest to every view '
                         '(the true images; no training, seconds)')
+    p.add_argument('--crosstalk', default='chart', choices=('chart', 'truth'),
+                   help="studio: the crosstalk E, the reference and D take: the charts' estimate (volcap harmonise) "
+                        "or, to bound what a better estimate gives, each camera's true one")
     args = p.parse_args()
     transport.configure()
     out = Path(args.out)
@@ -347,6 +369,7 @@ def main() -> int:
     surface = SurfaceConfig(surface=args.surface)
     device = 'cuda' if torch.cuda.is_available() else 'cpu'
     result = {'device': device, 'threads': torch.get_num_threads(), 'field': args.field, 'surface': args.surface,
+              'crosstalk': args.crosstalk,
               'commit': commit(), 'real_texture': [],
               'studio': []}
     for seed in args.frames_seeds:
@@ -397,14 +420,14 @@ def main() -> int:
               f"per point allows with the views' poses as given; the same camera's nearest pixels "
               f"{own['rms_levels']:.2f} (median {own['median_levels']:.1f})", flush=True)
     for seed in args.studio_seeds:
-        r = studio(seed, out, cfg, surface)
+        r = studio(seed, out, cfg, surface, args.crosstalk)
         result['studio'].append(r)
         m = r['methods']
         others = {n: v for n, v in m.items() if n not in ('neural', 'neural_live', 'true_colours')}
         best_pair = min((v['de2000_mean'], n) for n, v in others.items() if v['de2000_mean'] is not None)
         best_truth = min((v['truth_de2000'], n) for n, v in others.items() if v['truth_de2000'] is not None)
         print(f"studio seed {seed}: harmonise (demo's short run) {r['harmonise_seconds']:.0f} s (target <= 180), "
-              f"anchor {r['anchor']}; neural pairwise {_f(m['neural']['de2000_mean'])} vs best other "
+              f"anchor {r['anchor']}, the {args.crosstalk}'s crosstalk; neural pairwise {_f(m['neural']['de2000_mean'])} vs best other "
               f"{best_pair[0]:.2f} ({best_pair[1]}); truth {_f(m['neural']['truth_de2000'])} vs best other "
               f"{best_truth[0]:.2f} ({best_truth[1]}); untouched truth {_f(m['original']['truth_de2000'])}; "
               f"true colours' pairwise (the floor) {_f(m['true_colours']['de2000_mean'])}; each camera's exposure "
