@@ -40,8 +40,8 @@ def pytest_collection_modifyitems(items):
     # Longest first: `make test` hands whole files to two workers in this order
     # (--no-loadscope-reorder). xdist's own order, most tests first, started the demo's one
     # 170 s test near the end, and one worker ran on alone: replaying the measured durations
-    # through xdist's scheduler gives 757 s for that order and 708 s for this one; measured,
-    # pytest 12 min 53 s -> 11 min 19 s (with two trainings' D cut, test_neural; docs/benchmarks.md).
+    # through xdist's scheduler gives 757 s for that order and 703 s for this one (the demo test
+    # right after the heavy files: test_demo.py says why it is not one of them).
     # The sort is stable, so files without the mark keep their collection order.
     seconds = {}
     for item in items:
