@@ -83,16 +83,14 @@ lint: $(STAMP)
 
 # Two workers (pytest-xdist), a test file each at a time: most ROS tests wait on discovery and
 # the player as much as they compute, so two files at once use both cores (docs/benchmarks.md).
-# The files marked `heavy` go first, longest first (test/conftest.py), and xdist keeps that order.
 TEST_WORKERS ?= 2
-XDIST = -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 test: lint web chromium bytecode
-	$(PY) -m pytest test $(XDIST)
+	$(PY) -m pytest test -n $(TEST_WORKERS) --dist loadfile
 
 # No ROS nodes, nothing slow: the algorithms, the nodes' decision classes, packaging and docs.
 test-fast: lint web bytecode
-	$(PY) -m pytest test -m 'not ros and not slow' $(XDIST)
+	$(PY) -m pytest test -m 'not ros and not slow' -n $(TEST_WORKERS) --dist loadfile
 
 # Regenerates the parameter tables in docs/ from the config dataclasses.
 docs: $(STAMP)

@@ -37,18 +37,6 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if SLOW_FIXTURES & set(getattr(item, 'fixturenames', ())):
             item.add_marker(pytest.mark.slow)
-    # Longest first: `make test` hands whole files to two workers in this order
-    # (--no-loadscope-reorder). xdist's own order, most tests first, started the demo's one
-    # 170 s test near the end, and one worker ran on alone: replaying the measured durations
-    # through xdist's scheduler gives 757 s for that order and 703 s for this one (the demo test
-    # right after the heavy files: test_demo.py says why it is not one of them).
-    # The sort is stable, so files without the mark keep their collection order.
-    seconds = {}
-    for item in items:
-        mark = item.get_closest_marker('heavy')
-        if mark is not None:
-            seconds[item.path] = mark.args[0]
-    items.sort(key=lambda item: -seconds.get(item.path, 0.0))
 
 
 def require(condition: bool, reason: str) -> None:

@@ -5,10 +5,6 @@ import pytest
 
 from volcap_bringup.cli import main
 
-# Not marked heavy (170-196 s) on purpose: started first on a fresh clone, its eight camera
-# processes compiled the same numba kernels at once beside the neural trainings, the first frame
-# set outlasted the run's 30 s settle window and nothing was fused (4431f23). After the heavy
-# files (collection order) the kernels are in numba's cache, as on any machine that ran them.
 pytestmark = pytest.mark.ros
 
 

@@ -10,7 +10,7 @@ from volcap_bringup.live import LiveConfig, run_live
 from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_studio.session import GroundTruth
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(103)]
+pytestmark = pytest.mark.ros
 
 
 @pytest.fixture(scope='module')

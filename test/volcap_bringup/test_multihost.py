@@ -13,7 +13,7 @@ import pytest
 from volcap_bringup.processes import start_node, stop
 from volcap_core import topics
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.heavy(30)]
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 RECEIVER = '''
 import json, sys, time, rclpy

@@ -8,7 +8,7 @@ import pytest
 from volcap_bringup.cli import main
 from volcap_studio.session import GroundTruth
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(62)]
+pytestmark = pytest.mark.ros
 
 
 @pytest.fixture(scope='module')

@@ -26,7 +26,7 @@ from volcap_core.poses import invert
 from volcap_studio.session import GroundTruth
 from volcap_studio.vendor import frame_ids, frame_messages, tf_static_message, write_vendor_bag
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(118)]
+pytestmark = pytest.mark.ros
 
 # As the drivers publish: reliable, keep-last 1 (their queue size); /tf_static as tf2 does.
 DRIVER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,

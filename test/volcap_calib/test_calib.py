@@ -30,8 +30,6 @@ from volcap_core.color import ColorModel, delta_e2000, srgb_to_linear
 from volcap_core.poses import invert, look_at, perturb, rotation_angle_deg, transform_points
 from volcap_eval.calib import pose_errors, rig_reprojection
 
-pytestmark = pytest.mark.heavy(70)
-
 OPENCV_BOARD = BoardConfig(squares_x=5, squares_y=7, square_size=0.04, marker_size=0.02, dictionary='DICT_6X6_250')
 
 

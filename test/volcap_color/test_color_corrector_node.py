@@ -14,7 +14,7 @@ from volcap_core.calibration import Calibration, CameraCalibration
 from volcap_core.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
 from volcap_studio.session import GroundTruth
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(31)]
+pytestmark = pytest.mark.ros
 
 
 def _calibration(cameras, gain):

@@ -21,8 +21,6 @@ from volcap_core.camera import CameraModel
 from volcap_core.color import linear_to_srgb
 from volcap_core.poses import look_at
 
-pytestmark = pytest.mark.heavy(186)
-
 RADIUS = 0.3
 GAINS = {'cam0': (1.0, 1.0, 1.0), 'cam1': (0.75, 0.85, 1.1), 'cam2': (1.2, 1.0, 0.8)}
 

@@ -16,7 +16,7 @@ from volcap_core.bag_reader import BagReader
 from volcap_core.conversions import image_to_numpy, stamp_to_ns
 from volcap_studio.session import GroundTruth
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(74)]
+pytestmark = pytest.mark.ros
 
 def test_player_replays_with_original_stamps_and_latched_rig(studio_bag, probe_factory, procs, play):
     gt = GroundTruth(studio_bag)

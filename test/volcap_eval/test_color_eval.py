@@ -13,8 +13,6 @@ from volcap_eval.color import METHODS, capture_views
 from volcap_filter.registration import DepthRegistration
 from volcap_studio.session import GroundTruth
 
-pytestmark = pytest.mark.heavy(127)
-
 
 def test_correspondences_agree_with_ground_truth(studio_bag, gt_calibration):
     """Matches from the bag's noisy, cleaned depth land within 1 px of where the ground-truth

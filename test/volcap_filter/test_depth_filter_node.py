@@ -14,7 +14,7 @@ from volcap_core.conversions import camera_model_to_info, image_to_numpy, numpy_
 from volcap_core.frames import frame_sets
 from volcap_studio.session import GroundTruth
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(41)]
+pytestmark = pytest.mark.ros
 
 
 def test_filter_nodes_clean_a_replayed_bag_on_every_camera(studio_bag, ros_context, procs, play, probe_factory):

@@ -28,7 +28,7 @@ from volcap_fusion.sequence import read_manifest, read_ply
 from volcap_fusion.tsdf import raycasting_scene
 from volcap_studio.ideal import ring_views
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(42)]
+pytestmark = pytest.mark.ros
 VOXEL = 0.01
 STEP = VOXEL / 2                # the node's default position_step: half its voxel
 

@@ -18,7 +18,7 @@ from volcap_filter.pipeline import DepthFilterConfig
 from volcap_pipeline.replay import cleaned_frame_sets
 from volcap_studio.session import GroundTruth
 
-pytestmark = [pytest.mark.ros, pytest.mark.heavy(31)]
+pytestmark = pytest.mark.ros
 
 
 def _calibration(cameras, gain):
