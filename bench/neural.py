@@ -305,6 +305,15 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = 
     with _true_crosstalk(bag, charts) if crosstalk == 'truth' else contextlib.nullcontext():
         trained = harmonise.run(sets, cameras_in(sets, rig), short, models, surface, progress=False,
                                 views_seconds=0.0, chart_models=charts)
+    if crosstalk == 'truth':
+        # the patch reached the training: the manifest records the true matrices, not the charts'
+        from volcap_studio.session import GroundTruth
+        true = GroundTruth(bag).doc['cameras']
+        used = trained.manifest['crosstalk'] or {}
+        if set(used) != set(true) or any(not np.allclose(used[c], true[c]['color_response']['crosstalk'], atol=1e-4)
+                                         for c in used):
+            raise RuntimeError('--crosstalk truth did not reach the harmonisation (volcap_color.neural.chart_crosstalk '
+                               'is no longer where the training looks it up)')
     harmonise_s = time.perf_counter() - t0
     report = evaluate_color(bag, calibration, ColorEvalConfig(frames=demo.colour_frames), neural=models,
                             progress=False)

@@ -200,14 +200,13 @@ class Reference:
         balanced = np.clip(balanced, 0.0, 1.0)
         return torch.as_tensor(linear_to_srgb(balanced).astype(np.float32), device=device)
 
-    def _views(self, points: torch.Tensor, unmixed: bool | None = None):
-        """E's colour of ``points`` as each reference camera records it at its image centre
-        (``unmixed``: default the reference's own); a field with a shared surface colour
-        (``HashGridField``) computes it once for all cameras."""
+    def _views(self, points: torch.Tensor):
+        """E's colour of ``points`` as each reference camera records it at its image centre; a
+        field with a shared surface colour (``HashGridField``) computes it once for all cameras."""
         surface = getattr(self.field_model, 'surface_color', None)
         if surface is None:
             return [field_color(self.field_model, points, c, self.bf16) for c in self.centres]
-        return self._recorded(predict(_Call(surface), (points,), self.bf16), unmixed)
+        return self._recorded(predict(_Call(surface), (points,), self.bf16))
 
     def _recorded(self, latent: torch.Tensor, unmixed: bool | None = None) -> list[torch.Tensor]:
         model = self.field_model
