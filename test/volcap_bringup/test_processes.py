@@ -5,7 +5,7 @@ import subprocess
 import sys
 import time
 
-from volcap_bringup.processes import stop, stop_all
+from volcap_bringup.processes import stop, stop_all_timed
 
 # A child that says it is ready once its SIGINT handling is in place, then waits to be stopped.
 # ``clean``: SIGINT writes "<name> interrupted" and exits 3; ``hung``: SIGINT is ignored.
@@ -41,13 +41,17 @@ def test_stop_all_interrupts_every_process_and_kills_only_the_one_that_hangs(tmp
         _start(tmp_path, 'second', 'clean')
     try:
         _wait_ready(tmp_path, ['first', 'hung', 'second'])
-        codes = stop_all([first, hung, second, done], timeout=5.0)
+        stopped = stop_all_timed([first, hung, second, done], timeout=5.0)
     finally:
         for p in (first, hung, second):
             if p.poll() is None:
                 p.kill()
                 p.wait()
-    assert codes == [3, -signal.SIGKILL, 3, 5]
+    codes, seconds = zip(*stopped)
+    assert codes == (3, -signal.SIGKILL, 3, 5)
+    # each timed from the signals; the hung one killed only after its 5 s; none for the one that had ended
+    assert seconds[0] is not None and seconds[2] is not None and seconds[3] is None
+    assert seconds[1] >= 5.0
     assert (tmp_path / 'first.log').read_text() == 'first interrupted'
     assert (tmp_path / 'second.log').read_text() == 'second interrupted'
     assert not (tmp_path / 'hung.log').exists()

@@ -85,6 +85,30 @@ def test_recorder_writes_what_the_player_publishes(studio_bag, tmp_path, probe_f
         assert bytes(m.data) == bytes(original[stamp_to_ns(m.header.stamp)].data)
 
 
+def test_a_node_process_ends_with_its_last_words_and_its_exit_code(tmp_path, graph, procs):
+    """A node's ``main`` (``volcap_core.ros.node_main``) skips the interpreter's teardown with
+    ``os._exit`` once the node is shut down: what the node logs while shutting down still comes
+    out (the recorder's closing line, through C's stdout into a pipe, where it is fully buffered),
+    the node leaves the graph, and the exit code is the node's own (1: a recorder with no output)."""
+    recorder = start_node('volcap_driver', 'recorder', {'out': str(tmp_path / 'take'), 'topics': ['/volcap/rig']},
+                          env={'RCUTILS_LOGGING_USE_STDOUT': '1'}, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True)
+    procs.append(recorder)
+
+    def recorders() -> int:
+        return sum(1 for name in graph.node.get_node_names() if name == 'recorder')
+    assert graph.spin_until(lambda: recorders() == 1, 60)
+    assert stop(recorder) == 0
+    printed = recorder.stdout.read()
+    assert 'recorder started' in printed and 'closed bag: 0 messages on 0 topics' in printed, printed
+    assert graph.spin_until(lambda: recorders() == 0, 60)
+    unusable = start_node('volcap_driver', 'recorder', {'topics': ['/volcap/rig']}, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True)
+    procs.append(unusable)
+    assert unusable.wait(120) == 1
+    assert 'no output given' in unusable.stdout.read()
+
+
 def test_recorder_killed_mid_take_loses_nothing_written(studio_bag, tmp_path, procs, play):
     """kill -9 while recording a split bag: the closed files are listed and whole, and
     `volcap bag recover` restores every message the recorder wrote, the open file's included."""

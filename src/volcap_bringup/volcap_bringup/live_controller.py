@@ -16,7 +16,6 @@ and to ``on_summary``.
 """
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 
@@ -29,7 +28,7 @@ from std_msgs.msg import String
 from volcap_core import qos, topics
 from volcap_core.admission import AdmissionController
 from volcap_core.conversions import stamp_to_ns
-from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.ros import Diagnostics, declare_config, node_main
 from volcap_core.settings import setting
 
 STAGES = ('camera_pipeline', 'depth_filter', 'color_corrector', 'tsdf_fusion')
@@ -184,7 +183,7 @@ class LiveController(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(LiveController, args))
+    node_main(LiveController, args)
 
 
 if __name__ == '__main__':

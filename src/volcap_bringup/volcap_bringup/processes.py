@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import yaml
 
@@ -57,23 +58,46 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
 
 
 def stop_all(procs: list[subprocess.Popen], timeout: float = 10.0) -> list[int]:
-    """SIGINT to every process in the order given, then wait for each in turn, up to ``timeout`` s
-    per process, and SIGKILL one still running then. Each process thus has at least ``timeout`` s
-    after its signal, as when they were stopped one after the other, but they shut down together:
-    a node's clean shutdown (its DDS participant leaving) takes 1-2 s on 2 cores, so a rig's ten
-    processes took 10-16 s one by one. (One deadline shared by all was too short: a loaded CI run
-    had a camera pipeline killed 10 s after the signals, with the other nine shutting down beside
-    it.)"""
+    """``stop_all_timed``'s exit codes."""
+    return [code for code, _ in stop_all_timed(procs, timeout)]
+
+
+def stop_all_timed(procs: list[subprocess.Popen], timeout: float = 10.0) -> list[tuple[int, float | None]]:
+    """SIGINT to every process in the order given, then SIGKILL to one still running ``timeout`` s
+    later (and each process has at least ``timeout`` s after its signal: those still running then
+    are waited for one by one, ``timeout`` s each, as when they were stopped one after the other).
+    They shut down together: a rig's ten processes stopped one by one took 10-16 s. (One deadline
+    shared by all, then, was too short: a loaded CI run had a camera pipeline killed 10 s after
+    the signals, with the other nine shutting down beside it; each then spent 2.6-3.3 s in the
+    interpreter's teardown, which ``volcap_core.ros.node_main`` now skips.)
+
+    Returns (exit code, seconds from the signals to the exit) per process; the seconds are None for
+    a process that had ended before (no signal sent, its code kept)."""
+    signalled = []
     for proc in procs:
-        if proc.poll() is None:
+        signalled.append(proc.poll() is None)
+        if signalled[-1]:
             proc.send_signal(signal.SIGINT)
-    for proc in procs:
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return [proc.returncode for proc in procs]
+    start = time.monotonic()
+    seconds: list[float | None] = [None] * len(procs)
+
+    def reap() -> bool:
+        now = time.monotonic()
+        for i, proc in enumerate(procs):
+            if signalled[i] and seconds[i] is None and proc.poll() is not None:
+                seconds[i] = now - start
+        return all(s is not None for s, sent in zip(seconds, signalled) if sent)
+    while not reap() and time.monotonic() - start < timeout:
+        time.sleep(0.02)             # polled, so each process's exit is timed, not just reaped
+    for i, proc in enumerate(procs):
+        if signalled[i] and seconds[i] is None:
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            seconds[i] = time.monotonic() - start
+    return [(proc.returncode, s) for proc, s in zip(procs, seconds)]
 
 
 def compose(package: str, executable: str, namespace: str = '', params: dict | None = None,

@@ -148,7 +148,8 @@ def run_graph(cfg: RunConfig) -> dict:
             'bag_damage': bag_damage,
             'recording_failure': '; '.join(failures), 'playback_rate': cfg.rate, 'voxel_size': cfg.voxel_size,
             'wall_s': time.monotonic() - t_start, 'probe': summary,
-            'node_exit_codes': {spec_name(n): codes.get(spec_name(n), codes.get(n[1])) for n in nodes}}
+            'node_exit_codes': {spec_name(n): codes.get(spec_name(n), codes.get(n[1])) for n in nodes},
+            'node_stop_s': {name: round(s, 2) for name, s in session.stop_seconds.items()}}
 
 
 def _capture_sets(reader: BagReader, color_topic: str) -> int:
@@ -217,6 +218,11 @@ class RunReport:
         if 'raw_vs_clean_error' in m:
             out.append(f'no raw-vs-clean figure: {m["raw_vs_clean_error"]}')
         out.append(f'metrics: {self.out / "metrics.json"}  renders: {self.out / "renders"}')
+        stops = m.get('node_stop_s') or {}
+        if stops:
+            slowest = max(stops, key=stops.get)
+            out.append(f'{len(stops)} node processes stopped within {stops[slowest]:.2f} s of SIGINT '
+                       f'(the last: {slowest})')
         if self.failed_nodes:
             out.append(f'nodes that exited with an error: {self.failed_nodes}')
         return out

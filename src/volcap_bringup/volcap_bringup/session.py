@@ -13,7 +13,7 @@ one executor with a host node of its own, which publishes what the graph needs f
 command adds nodes it hosts (probes, the live controller, composed nodes) and starts node
 processes (``ros2 run`` style). On exit, whatever happened, it signals the processes in reverse
 start order (the source first, so no stage reports the others' absence while they stop) and
-waits for them together (``processes.stop_all``), destroys
+waits for them together (``processes.stop_all_timed``; ``stop_seconds`` keeps how long each took), destroys
 the hosted nodes and shuts rclpy down. `volcap run`, `volcap live`, the demo, `volcap monitor`,
 `volcap view --live`, `volcap operator` and the ROS tests all use it; nodes in their own process
 use ``volcap_core.ros.run_node``.
@@ -35,7 +35,7 @@ from volcap_core.errors import GraphError
 from volcap_core.ros import make_executor
 
 from .graph import NodeSpec
-from .processes import compose, start_node, stop_all
+from .processes import compose, start_node, stop_all_timed
 
 
 def spec_name(spec: NodeSpec) -> str:
@@ -61,6 +61,7 @@ class GraphSession:
         self.hosted: list[Node] = []
         self._hosted_names: dict[int, str] = {}       # id(node) -> its spec name (composed nodes)
         self.exit_codes: dict[str, int | None] = {}
+        self.stop_seconds: dict[str, float] = {}      # per process: from its SIGINT to its exit
         self.node: Node | None = None
         self.executor = None
         self._started = False
@@ -87,8 +88,9 @@ class GraphSession:
     def close(self) -> None:
         """Stops every process (reverse start order) and hosted node, then rclpy. Idempotent."""
         names = list(reversed(self.processes))
-        codes = stop_all([self.processes[n] for n in names])
-        self.exit_codes.update(zip(names, codes))
+        stopped = stop_all_timed([self.processes[n] for n in names])
+        self.exit_codes.update((n, code) for n, (code, _) in zip(names, stopped))
+        self.stop_seconds.update((n, s) for n, (_, s) in zip(names, stopped) if s is not None)
         self.processes.clear()
         for node in reversed(self.hosted):
             name = self._hosted_names.get(id(node), node.get_name())

@@ -17,7 +17,6 @@ response names the cameras and why, and the previous file and topics stay as the
 """
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -40,7 +39,7 @@ from volcap_core.conversions import (
     stamp_to_ns,
 )
 from volcap_core.rig_source import RigResolver
-from volcap_core.ros import Diagnostics, StaticTransformListener, declare_config, run_node, subscribe_color
+from volcap_core.ros import Diagnostics, StaticTransformListener, declare_config, node_main, subscribe_color
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
@@ -235,7 +234,7 @@ class CalibrationService(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(CalibrationService, args))
+    node_main(CalibrationService, args)
 
 
 if __name__ == '__main__':

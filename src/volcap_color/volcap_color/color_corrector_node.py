@@ -19,7 +19,6 @@ is used.
 """
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 
@@ -30,7 +29,7 @@ from std_msgs.msg import String
 from volcap_core import qos, topics
 from volcap_core.cdr import image_to_cdr
 from volcap_core.conversions import MessageConversionError, color_message_to_rgb, stamp_to_ns
-from volcap_core.ros import AdmissionListener, Diagnostics, color_message_type, declare_config, run_node, subscribe_color
+from volcap_core.ros import AdmissionListener, Diagnostics, color_message_type, declare_config, node_main, subscribe_color
 from volcap_core.settings import color_transport_setting, setting
 
 from .config import ColorCorrectionConfig
@@ -116,7 +115,7 @@ class ColorCorrector(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(ColorCorrector, args))
+    node_main(ColorCorrector, args)
 
 
 if __name__ == '__main__':

@@ -10,7 +10,6 @@ subscribers still get them. A missing, corrupt or truncated bag is reported on t
 from __future__ import annotations
 
 import queue
-import sys
 import threading
 import time
 
@@ -20,7 +19,7 @@ from rclpy.node import Node
 from volcap_core import qos, topics
 from volcap_core.bag_io import BagError, message_class
 from volcap_core.bag_reader import BagReader
-from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.ros import Diagnostics, declare_config, node_main
 from volcap_core.sync import DEFAULT_PERIOD_NS, PeriodEstimate
 
 from .playback import (
@@ -234,7 +233,7 @@ class BagPlayer(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(BagPlayer, args))
+    node_main(BagPlayer, args)
 
 
 if __name__ == '__main__':

@@ -17,7 +17,6 @@ ERROR naming the file and the free space; what was written stays readable.
 """
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 
 from rclpy.node import Node
@@ -25,7 +24,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from volcap_core.bag_io import COMPRESSIONS, BagError, message_class
 from volcap_core.bag_writer import BagWriter, QueuedBagWriter
-from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.ros import Diagnostics, declare_config, node_main
 from volcap_core.settings import setting
 
 IGNORED = ('/rosout', '/parameter_events', '/volcap/diagnostics')
@@ -157,7 +156,7 @@ class Recorder(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(Recorder, args))
+    node_main(Recorder, args)
 
 
 if __name__ == '__main__':

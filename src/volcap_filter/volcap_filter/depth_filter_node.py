@@ -17,7 +17,6 @@ parameter and can be changed while running.
 """
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -47,7 +46,7 @@ from volcap_core.ros import (
     StaticTransformListener,
     color_message_type,
     declare_config,
-    run_node,
+    node_main,
     subscribe_color,
 )
 from volcap_core.sync import FrameSetSynchronizer, tolerance_ns_from_ms
@@ -286,7 +285,7 @@ class DepthFilter(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(DepthFilter, args))
+    node_main(DepthFilter, args)
 
 
 if __name__ == '__main__':

@@ -31,7 +31,6 @@ While a session phase is announced on ``/volcap/phase``, only the ``phases`` lis
 """
 from __future__ import annotations
 
-import sys
 import time
 from collections import deque
 
@@ -56,7 +55,7 @@ from volcap_core.conversions import (
 from volcap_core.errors import BadInput
 from volcap_core.gltf_marker import glb_marker
 from volcap_core.health import SilenceWatch
-from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, run_node
+from volcap_core.ros import AdmissionListener, Diagnostics, declare_config, node_main
 from volcap_core.sync import FrameSet, FrameSetSynchronizer, tolerance_ns_from_ms
 from volcap_core.worker import DropOldestWorker
 
@@ -344,7 +343,7 @@ class TsdfFusionNode(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(TsdfFusionNode, args))
+    node_main(TsdfFusionNode, args)
 
 
 if __name__ == '__main__':

@@ -23,8 +23,6 @@ a rig that wants them apart; their topics are the same, so fusion takes either.
 """
 from __future__ import annotations
 
-import sys
-
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import String
 
@@ -34,7 +32,7 @@ from volcap_core import qos, topics, wire
 from volcap_core.cdr import image_to_cdr
 from volcap_core.conversions import camera_model_to_info
 from volcap_core.diagnostics import LEVELS
-from volcap_core.ros import declare_config, run_node
+from volcap_core.ros import declare_config, node_main
 from volcap_filter.depth_filter_node import DepthFilter, decode
 from volcap_filter.mask import BackgroundModel
 from volcap_filter.pipeline import DepthFilterConfig
@@ -139,7 +137,7 @@ class CameraPipelineNode(DepthFilter):
 
 
 def main(args=None):
-    sys.exit(run_node(CameraPipelineNode, args))
+    node_main(CameraPipelineNode, args)
 
 
 if __name__ == '__main__':

@@ -8,7 +8,6 @@ topics a real rig's drivers use, plus the rig description (latched) on ``volcap/
 """
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 
@@ -21,7 +20,7 @@ from volcap_calib.board import BoardConfig
 from volcap_core import qos, topics
 from volcap_core.conversions import camera_model_to_info, ns_to_stamp, numpy_to_image
 from volcap_core.errors import BadInput
-from volcap_core.ros import Diagnostics, declare_config, run_node
+from volcap_core.ros import Diagnostics, declare_config, node_main
 from volcap_core.settings import setting
 from volcap_studio.studio import (
     SCENES,
@@ -107,7 +106,7 @@ class SyntheticRig(Node):
 
 
 def main(args=None):
-    sys.exit(run_node(SyntheticRig, args))
+    node_main(SyntheticRig, args)
 
 
 if __name__ == '__main__':
