@@ -79,8 +79,8 @@ def run_once(bag: Path, calibration: Path, main: str, load: int) -> dict:
             try:
                 metrics = run_graph(RunConfig(bag, calibration, out, rate=0.25, progress=False))
             finally:
-                for p in busy:
-                    p.terminate()
+                for p in busy:    # SIGKILL: a child forked after rclpy.init keeps rclpy's SIGTERM handler
+                    p.kill()
                     p.join()
     stops = metrics['node_stop_s']
     return {'main': main, 'load': load, 'node_stop_s': stops, 'exit_codes': metrics['node_exit_codes'],
