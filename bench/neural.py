@@ -22,10 +22,16 @@
 
     python bench/neural.py [--out bench_out/neural] [--frames-seeds 0 1 2] [--studio-seeds 7 0]
         [--field hashgrid|paper] [--surface fused|views] [--single-view-floor 0] [--cross-view-floor 0 1 2]
-        [--exposure-floor 0 1 2] [--crosstalk chart|truth]
+        [--exposure-floor 0 1 2] [--crosstalk chart|truth] [--chart-fit matte|sheen]
 
 ``--crosstalk truth``: the studio with each camera's true crosstalk in place of the charts'
 estimate (the anchor still the charts'), to bound what a better estimate would give.
+
+``--chart-fit sheen``: the studio calibrated with ``bench/chart_models.py``'s sheen prototype
+(one gloss per camera and view, in the view's light, taken off the chart patches before each
+camera's colour model is fitted) in place of the shipped matte fit; every method that takes the
+chart models (``volcap_chart``, the neural anchor and crosstalk) takes these. Give it its own
+``--out`` (the calibration is made once per folder; an existing bag there is used as it is).
 
 ``--surface``: where E's and D's training pixels lie (``volcap harmonise --surface``; fused, the
 default, or each view's own depth); ``bench/neural_fused_surface.py`` runs both side by side.
@@ -276,8 +282,30 @@ def _true_crosstalk(bag: Path, models: dict):
     return mock.patch('volcap_color.neural.chart_crosstalk', lambda model: truth[camera_of[id(model)]])
 
 
+def _sheen_chart_fit():
+    """`volcap calibrate`'s chart fit with ``bench/chart_models.py``'s sheen prototype in place of
+    the matte ``view_illumination`` (patched here only). Returns (the patch, the offsets it used)."""
+    from unittest import mock
+
+    import chart_models
+
+    from volcap_calib.calibrate import Calibrator
+    used = {}
+
+    def illumination(calibrator):
+        E, used['offsets'] = chart_models._illumination_with_offsets(calibrator, sheen=True)
+        return E
+
+    def color_samples(calibrator, camera, illumination):
+        return chart_models._samples(calibrator, camera, illumination, used['offsets'])
+    patch = contextlib.ExitStack()
+    patch.enter_context(mock.patch.object(Calibrator, 'illumination', illumination))
+    patch.enter_context(mock.patch.object(Calibrator, 'color_samples', color_samples))
+    return patch, used
+
+
 def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = SurfaceConfig(),
-           crosstalk: str = 'chart') -> dict:
+           crosstalk: str = 'chart', chart_fit: str = 'matte') -> dict:
     from volcap_bringup.demo_cli import DemoConfig
     from volcap_calib.run import CalibrateConfig
     from volcap_calib.run import run as calibrate
@@ -293,9 +321,18 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = 
     demo = DemoConfig()
     bag, calibration = out / f'studio_seed{seed}', out / f'studio_seed{seed}.calibration.yaml'
     if not calibration.exists():
-        synthesize(bag, SynthConfig(cameras=8, frames=demo.colour_frames, board_poses=demo.board_poses,
-                                    board_layout=demo.board_layout, background_frames=3, seed=seed), overwrite=True)
-        calibrate(CalibrateConfig(bag, calibration))
+        if not (bag / 'metadata.yaml').exists():
+            synthesize(bag, SynthConfig(cameras=8, frames=demo.colour_frames, board_poses=demo.board_poses,
+                                        board_layout=demo.board_layout, background_frames=3, seed=seed), overwrite=True)
+        if chart_fit == 'sheen':
+            patch, used = _sheen_chart_fit()
+            with patch:
+                calibrate(CalibrateConfig(bag, calibration))
+            if not used.get('offsets'):
+                raise RuntimeError('--chart-fit sheen did not reach the calibration (Calibrator.illumination is no '
+                                   'longer where volcap calibrate fits the charts)')
+        else:
+            calibrate(CalibrateConfig(bag, calibration))
     rig = Calibration.load(calibration)
     t0 = time.perf_counter()
     sets = capture_views(bag, rig, demo.colour_frames, False)
@@ -320,6 +357,7 @@ def studio(seed: int, out: Path, cfg: HarmoniseConfig, surface: SurfaceConfig = 
     (out / f'studio_seed{seed}.json').write_text(json.dumps(report, indent=1, default=float))
     rows = report['methods']
     return {'seed': seed, 'harmonise_seconds': harmonise_s, 'anchor': trained.manifest['anchor'], 'crosstalk': crosstalk,
+            'chart_fit': chart_fit,
             'field_held_out_rms': trained.manifest['field_error']['rms_levels'], 'texture': trained.manifest['texture'],
             'surface': surface_summary(trained.manifest),
             'methods': {n: _row(rows, n) for n in rows}}
@@ -370,6 +408,9 @@ def main() -> int:
     p.add_argument('--crosstalk', default='chart', choices=('chart', 'truth'),
                    help="studio: the crosstalk E, the reference and D take: the charts' estimate (volcap harmonise) "
                         "or, to bound what a better estimate gives, each camera's true one")
+    p.add_argument('--chart-fit', default='matte', choices=('matte', 'sheen'),
+                   help="studio: calibrate the charts as volcap calibrate does (matte) or with bench/chart_models.py's "
+                        "sheen prototype (give it its own --out)")
     args = p.parse_args()
     transport.configure()
     out = Path(args.out)
@@ -429,14 +470,15 @@ def main() -> int:
               f"per point allows with the views' poses as given; the same camera's nearest pixels "
               f"{own['rms_levels']:.2f} (median {own['median_levels']:.1f})", flush=True)
     for seed in args.studio_seeds:
-        r = studio(seed, out, cfg, surface, args.crosstalk)
+        r = studio(seed, out, cfg, surface, args.crosstalk, args.chart_fit)
         result['studio'].append(r)
         m = r['methods']
         others = {n: v for n, v in m.items() if n not in ('neural', 'neural_live', 'true_colours')}
         best_pair = min((v['de2000_mean'], n) for n, v in others.items() if v['de2000_mean'] is not None)
         best_truth = min((v['truth_de2000'], n) for n, v in others.items() if v['truth_de2000'] is not None)
         print(f"studio seed {seed}: harmonise (demo's short run) {r['harmonise_seconds']:.0f} s (target <= 180), "
-              f"anchor {r['anchor']}, the {args.crosstalk}'s crosstalk; neural pairwise {_f(m['neural']['de2000_mean'])} vs best other "
+              f"anchor {r['anchor']}, the {args.crosstalk}'s crosstalk, the {args.chart_fit} chart fit; "
+              f"neural pairwise {_f(m['neural']['de2000_mean'])} vs best other "
               f"{best_pair[0]:.2f} ({best_pair[1]}); truth {_f(m['neural']['truth_de2000'])} vs best other "
               f"{best_truth[0]:.2f} ({best_truth[1]}); untouched truth {_f(m['original']['truth_de2000'])}; "
               f"true colours' pairwise (the floor) {_f(m['true_colours']['de2000_mean'])}; each camera's exposure "
