@@ -63,13 +63,14 @@ def stop_all(procs: list[subprocess.Popen], timeout: float = 10.0) -> list[int]:
 
 
 def stop_all_timed(procs: list[subprocess.Popen], timeout: float = 10.0) -> list[tuple[int, float | None]]:
-    """SIGINT to every process in the order given, then SIGKILL to one still running ``timeout`` s
-    later (and each process has at least ``timeout`` s after its signal: those still running then
-    are waited for one by one, ``timeout`` s each, as when they were stopped one after the other).
-    They shut down together: a rig's ten processes stopped one by one took 10-16 s. (One deadline
-    shared by all, then, was too short: a loaded CI run had a camera pipeline killed 10 s after
-    the signals, with the other nine shutting down beside it; each then spent 2.6-3.3 s in the
-    interpreter's teardown, which ``volcap_core.ros.node_main`` now skips.)
+    """SIGINT to every process in the order given; each exit is timed by polling them all for up
+    to ``timeout`` s. Those still running then are waited for one by one, ``timeout`` s more each,
+    and killed (SIGKILL) at the end of their wait: so a hung process is killed no sooner than
+    2 x ``timeout`` s after the signals (the first of them 20 s at the default; the old rule,
+    sequential waits alone, killed it at 10 s). They shut down together: a rig's ten processes
+    stopped one by one took 10-16 s. A loaded CI run once had a camera pipeline killed under the
+    old rule while it sat in the interpreter's teardown (2.6-3.3 s a process unloaded), which
+    ``volcap_core.ros.node_main`` now skips: bench/shutdown.py, 0.3-0.4 s a process.
 
     Returns (exit code, seconds from the signals to the exit) per process; the seconds are None for
     a process that had ended before (no signal sent, its code kept)."""

@@ -106,10 +106,11 @@ def node_main(factory: Callable[[], Node], args=None) -> NoReturn:
     ``destroy_node``, rclpy is shut down, the DDS participant has left and the ROS log is
     flushed. What remains is the interpreter's teardown (module clean-up, its garbage
     collections over torch's, Open3D's and numba's objects, C++ static destructors), which
-    kept a rig's ten node processes alive 2.6-3.3 s after SIGINT on 2 cores, unloaded (0.16-0.5 s
-    without it), and past the graph session's 10 s grace on a loaded CI runner (a camera
-    pipeline killed, exit -9). So Python's buffers and ``logging`` are flushed and the process
-    exits with ``os._exit``, as a forked worker does. For a node process only: never call it
+    kept a rig's ten node processes alive 2.8-3.5 s after SIGINT (median; once 20 s) on 2 cores,
+    against 0.30-0.39 s (at most 0.66 s) without it (bench/shutdown.py), and past the graph
+    session's grace on a loaded CI runner (a camera pipeline killed, exit -9). So Python's
+    buffers and ``logging`` are flushed and the process exits with ``os._exit``, as a forked
+    worker does. For a node process only: never call it
     in a process that goes on. A node that raises out of ``run_node`` (a bug) ends as Python
     does, with its traceback and exit code 1."""
     code = run_node(factory, args)
